@@ -1,0 +1,245 @@
+"""The edge agent: one acquisition loop per stream, publishing SampleBatch over Zenoh.
+
+Each stream runs in its own thread (blocking hardware calls never share a loop): read a block
+from the driver, apply scale/offset and validity in numpy, stamp it from the scan clock fit,
+encode and publish. The agent also publishes node health at ~1 Hz, system events, and holds a
+liveliness token so the hub sees the node come and go.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from edge import __version__
+from edge.config import SiteConfig, StreamConfig
+from edge.drivers import Driver, create_driver
+from edge.errors import DriverError
+from edge.timebase import ScanClock
+from edge.wire import BatchEncoder, alive_key, data_key, health_key
+from edge.zenoh_session import client_config
+from ptp.quality import UNSYNCED, ClockQuality
+
+log = logging.getLogger("fleetdaq.edge")
+
+
+@dataclass(slots=True)
+class StreamCounters:
+    batches: int = 0
+    scans: int = 0
+    invalid_samples: int = 0
+    read_errors: int = 0
+    next_sequence: int = 0
+
+
+class Events:
+    """Publishes system messages on ``.../events`` (and logs them)."""
+
+    def __init__(self, session: Any, key: str, node: str) -> None:
+        self._pub = session.declare_publisher(key)
+        self._node = node
+
+    def emit(self, level: str, source: str, message: str) -> None:
+        getattr(log, level if level in {"info", "warning", "error"} else "info")(
+            "%s: %s", source, message
+        )
+        event = {
+            "time_ns": time.time_ns(),
+            "node": self._node,
+            "level": level,
+            "source": source,
+            "message": message,
+        }
+        self._pub.put(json.dumps(event).encode())
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class StreamLoop:
+    """Acquires one stream in its own thread until stopped."""
+
+    def __init__(
+        self,
+        site: str,
+        node: str,
+        name: str,
+        cfg: StreamConfig,
+        session: Any,
+        events: Events,
+        driver: Driver | None = None,
+    ) -> None:
+        self.name = name
+        self.cfg = cfg
+        self.events = events
+        self.driver = driver or create_driver(cfg)
+        names = tuple(ch.name for ch in cfg.channels)
+        units = tuple(ch.unit for ch in cfg.channels)
+        self.encoder = BatchEncoder(node, name, names, units)
+        self.scale = np.array([ch.scale for ch in cfg.channels])
+        self.offset = np.array([ch.offset for ch in cfg.channels])
+        self.clock = ScanClock(cfg.rate_hz)
+        self.counters = StreamCounters()
+        self.quality: ClockQuality = UNSYNCED
+        self._pub = session.declare_publisher(
+            data_key(site, node, name),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        backoff = 0.5
+        while not self._stop.is_set():
+            try:
+                self.driver.open()
+                backoff = 0.5
+                self._acquire()
+            except InterruptedError:
+                break
+            except (DriverError, OSError) as err:
+                self.counters.read_errors += 1
+                self.events.emit(
+                    "error", self.name, f"driver failed, retrying in {backoff}s: {err}"
+                )
+                with_close(self.driver)
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(backoff * 2, 30.0)
+
+    def _acquire(self) -> None:
+        index = 0  # scans acquired since this open; sequence numbers continue across reopen
+        c = self.counters
+        while not self._stop.is_set():
+            block = self.driver.read()
+            scans = block.raw.shape[0]
+            values = block.raw * self.scale + self.offset
+            if block.status is not None:
+                bad = block.status != 0
+                values[bad] = np.nan
+                c.invalid_samples += int(bad.sum())
+            index += scans
+            self.clock.observe(index, block.host_ns)
+            payload = self.encoder.encode(
+                c.next_sequence,
+                self.clock.time_of(index - scans),
+                self.clock.period_ns,
+                values,
+                self.quality,
+                block.status,
+            )
+            self._pub.put(payload)
+            c.next_sequence += 1
+            c.batches += 1
+            c.scans += scans
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.driver.close()
+
+    def join(self, timeout: float) -> None:
+        self._thread.join(timeout)
+        self._pub.undeclare()
+
+
+def with_close(driver: Driver) -> None:
+    try:
+        driver.close()
+    except (DriverError, OSError) as err:
+        log.warning("closing driver: %s", err)
+
+
+class EdgeAgent:
+    """Runs every stream of one node. A context manager: streams start on enter, stop on exit."""
+
+    def __init__(self, site: SiteConfig, node: str, endpoints: list[str] | None = None) -> None:
+        if node not in site.nodes:
+            raise DriverError(f"node {node!r} is not in the site config")
+        self.site = site
+        self.node = node
+        self.endpoints = endpoints or site.endpoints_for(node)
+        self._session: Any = None
+        self.loops: list[StreamLoop] = []
+        self._stop = threading.Event()
+        self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
+        self.started_ns = 0
+
+    def __enter__(self) -> EdgeAgent:
+        self.start()
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def start(self) -> None:
+        sid, node = self.site.site, self.node
+        self._session = zenoh.open(client_config(self.endpoints))
+        self.events = Events(self._session, f"fleetdaq/{sid}/{node}/events", node)
+        self._token = self._session.liveliness().declare_token(alive_key(sid, node))
+        self._health_pub = self._session.declare_publisher(health_key(sid, node))
+        for name, cfg in self.site.nodes[node].streams.items():
+            self.loops.append(StreamLoop(sid, node, name, cfg, self._session, self.events))
+        self.started_ns = time.time_ns()
+        for loop in self.loops:
+            loop.start()
+        self._health_thread.start()
+        self.events.emit(
+            "info",
+            "agent",
+            f"started fleetdaq {__version__} with "
+            f"{len(self.loops)} stream(s), connecting to {self.endpoints}",
+        )
+
+    def health(self) -> dict[str, Any]:
+        return {
+            "node": self.node,
+            "time_ns": time.time_ns(),
+            "version": __version__,
+            "uptime_s": (time.time_ns() - self.started_ns) / 1e9,
+            "streams": {
+                loop.name: {
+                    "batches": loop.counters.batches,
+                    "scans": loop.counters.scans,
+                    "invalid_samples": loop.counters.invalid_samples,
+                    "read_errors": loop.counters.read_errors,
+                    "next_sequence": loop.counters.next_sequence,
+                    "period_ns": loop.clock.period_ns,
+                }
+                for loop in self.loops
+            },
+        }
+
+    def _health(self) -> None:
+        while not self._stop.wait(1.0):
+            self._health_pub.put(json.dumps(self.health()).encode())
+
+    def close(self) -> None:
+        """Stop every stream and close the session. Idempotent."""
+        if self._session is None:
+            return
+        self._stop.set()
+        for loop in self.loops:
+            loop.stop()
+        for loop in self.loops:
+            loop.join(5.0)
+        self._health_thread.join(2.0)
+        self.events.emit("info", "agent", "stopped")
+        self.events.close()
+        self._health_pub.undeclare()
+        self._token.undeclare()
+        self._session.close()
+        self._session = None

@@ -1,0 +1,67 @@
+"""Drivers: one device, one module, behind the small `Driver` protocol.
+
+The registry maps a config's `driver` name to ``"module:Class"`` and imports it only when a
+config uses it, so a missing vendor library fails that driver alone, with a typed error.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from edge.errors import DriverError, DriverUnavailable
+
+if TYPE_CHECKING:
+    from edge.config import StreamConfig
+
+
+@dataclass(frozen=True, slots=True)
+class Block:
+    """Consecutive scans as read from a device, before scale/offset."""
+
+    raw: npt.NDArray[np.float64]
+    """(scans, channels)."""
+    host_ns: int
+    """CLOCK_REALTIME right after the read returned (every scan in the block is older)."""
+    status: npt.NDArray[np.uint8] | None = None
+    """(scans, channels) SampleStatus codes, None when all valid."""
+
+
+class Driver(Protocol):
+    """What the acquisition loop needs from a device."""
+
+    def open(self) -> None: ...
+
+    def read(self) -> Block:
+        """Block until the next `scans_per_batch` scans are available and return them."""
+        ...
+
+    def close(self) -> None:
+        """Idempotent."""
+        ...
+
+
+REGISTRY: dict[str, str] = {
+    "wave_sim": "edge.drivers.wave_sim:WaveSim",
+    "thermocouple_sim": "edge.drivers.thermocouple_sim:ThermocoupleSim",
+    "environment_sim": "edge.drivers.environment_sim:EnvironmentSim",
+}
+
+
+def create_driver(cfg: StreamConfig) -> Driver:
+    """Import the driver named by `cfg.driver` (only now) and construct it from `cfg`."""
+    target = REGISTRY.get(cfg.driver)
+    if target is None:
+        raise DriverError(f"no driver named {cfg.driver!r}")
+    module_name, _, class_name = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise DriverUnavailable(f"driver {cfg.driver!r} needs {err.name!r}: {err}") from err
+    cls = getattr(module, class_name)
+    driver: Driver = cls(cfg)
+    return driver

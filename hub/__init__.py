@@ -1,0 +1,3 @@
+"""fleetdaq hub: embedded Zenoh router, recorder, supervision, dashboard and the CLI."""
+
+from __future__ import annotations

@@ -1,0 +1,11 @@
+"""Errors raised by the hub package."""
+
+from __future__ import annotations
+
+
+class HubError(Exception):
+    """Base of every error the hub raises on purpose."""
+
+
+class RouterError(HubError):
+    """The embedded Zenoh router could not start (e.g. the listen port is taken)."""

@@ -1,0 +1,272 @@
+"""One recording session on disk: a UTC-named folder of split MCAP files.
+
+Received payloads go into MCAP untouched (ros2msg schema, cdr encoding, zstd chunks).
+A file being written is named ``*.mcap.active`` and renamed to ``*.mcap`` once finished, so
+a reader can tell which files are complete. Every file carries the session metadata and the
+effective config; the folder gets a rosbag2 ``metadata.yaml`` listing the closed files, so
+``rosbags`` (and ``ros2 bag``) can open the whole session as one bag.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import fnmatch
+import logging
+import os
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import yaml
+from mcap.writer import CompressionType, Writer
+
+from edge import __version__
+from edge.config import RecorderConfig
+from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+
+log = logging.getLogger("fleetdaq.recorder")
+
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+ACTIVE_SUFFIX = ".active"
+
+
+def session_name(now_ns: int) -> str:
+    t = dt.datetime.fromtimestamp(now_ns / 1e9, tz=dt.UTC)
+    return t.strftime("%Y-%m-%dT%H-%M-%SZ")
+
+
+def topic_of(node: str, stream: str) -> str:
+    return f"/{node}/{stream}"
+
+
+class StreamSelector:
+    """include/exclude fnmatch patterns on ``node/stream``: every pattern counts."""
+
+    def __init__(self, include: list[str], exclude: list[str]) -> None:
+        self.include = include
+        self.exclude = exclude
+        self._memo: dict[str, bool] = {}
+
+    def __call__(self, node: str, stream: str) -> bool:
+        name = f"{node}/{stream}"
+        hit = self._memo.get(name)
+        if hit is None:
+            hit = any(fnmatch.fnmatchcase(name, p) for p in self.include) and not any(
+                fnmatch.fnmatchcase(name, p) for p in self.exclude
+            )
+            self._memo[name] = hit
+        return hit
+
+
+@dataclass(slots=True)
+class _FileStats:
+    path: Path
+    messages: int = 0
+    start_ns: int | None = None
+    end_ns: int | None = None
+    per_topic: dict[str, int] = field(default_factory=dict)
+
+    def add(self, topic: str, log_time: int) -> None:
+        self.messages += 1
+        self.per_topic[topic] = self.per_topic.get(topic, 0) + 1
+        if self.start_ns is None:
+            self.start_ns = log_time
+        self.end_ns = log_time
+
+
+class _OpenFile:
+    def __init__(self, path: Path, cfg: RecorderConfig, opened_ns: int) -> None:
+        self.path = path
+        self.active = path.with_name(path.name + ACTIVE_SUFFIX)
+        self.fh: IO[bytes] = open(self.active, "xb")  # noqa: SIM115 - closed in finish()
+        self.writer = Writer(
+            self.fh, chunk_size=cfg.chunk_size, compression=_COMPRESSION[cfg.compression]
+        )
+        self.writer.start(profile="ros2", library=f"fleetdaq/{__version__}")
+        self.schema_id = self.writer.register_schema(
+            name=SAMPLE_BATCH_TYPE, encoding="ros2msg", data=SAMPLE_BATCH_SCHEMA.encode()
+        )
+        self.channels: dict[str, int] = {}
+        self.opened_ns = opened_ns
+        self.stats = _FileStats(path)
+
+    def channel(self, topic: str) -> int:
+        cid = self.channels.get(topic)
+        if cid is None:
+            cid = self.writer.register_channel(
+                topic=topic,
+                message_encoding="cdr",
+                schema_id=self.schema_id,
+                metadata={"offered_qos_profiles": ""},
+            )
+            self.channels[topic] = cid
+        return cid
+
+    def finish(self) -> None:
+        self.writer.finish()  # type: ignore[no-untyped-call]
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+        self.fh.close()
+        os.replace(self.active, self.path)
+
+
+class RecordingSession:
+    """Writes messages into split MCAP files under ``root/<UTC start>/``."""
+
+    def __init__(
+        self,
+        root: Path,
+        site: str,
+        nodes: list[str],
+        cfg: RecorderConfig,
+        config_yaml: str,
+        now_ns: int,
+    ) -> None:
+        self.cfg = cfg
+        self.site = site
+        self.nodes = nodes
+        self.config_yaml = config_yaml
+        self.start_ns = now_ns
+        base = session_name(now_ns)
+        self.name = base
+        root.mkdir(parents=True, exist_ok=True)
+        n = 1
+        while True:
+            try:
+                (root / self.name).mkdir()
+                break
+            except FileExistsError:
+                n += 1
+                self.name = f"{base}_{n}"
+        self.dir = root / self.name
+        self.closed: list[_FileStats] = []
+        self.topic_types: dict[str, str] = {}
+        self._file: _OpenFile | None = None
+        self._index = 0
+
+    @property
+    def current_file(self) -> Path | None:
+        return self._file.active if self._file else None
+
+    def _open(self, now_ns: int) -> _OpenFile:
+        path = self.dir / f"{self.name}_{self._index:04d}.mcap"
+        self._index += 1
+        f = _OpenFile(path, self.cfg, now_ns)
+        f.writer.add_metadata(
+            "fleetdaq.session",
+            {
+                "site": self.site,
+                "session": self.name,
+                "nodes": ",".join(self.nodes),
+                "software": f"fleetdaq {__version__}",
+                "session_start_ns": str(self.start_ns),
+                "session_start_utc": dt.datetime.fromtimestamp(
+                    self.start_ns / 1e9, tz=dt.UTC
+                ).isoformat(),
+                "file_index": str(self._index - 1),
+                "hub_host": socket.gethostname(),
+            },
+        )
+        f.writer.add_attachment(
+            create_time=now_ns,
+            log_time=now_ns,
+            name="config.yaml",
+            media_type="application/yaml",
+            data=self.config_yaml.encode(),
+        )
+        self._file = f
+        log.info("recording into %s", f.active)
+        return f
+
+    def due_split(self, now_ns: int) -> bool:
+        f = self._file
+        if f is None:
+            return False
+        if self.cfg.file_duration_s is not None and (
+            now_ns - f.opened_ns >= self.cfg.file_duration_s * 1e9
+        ):
+            return True
+        # MCAP buffers a chunk in memory: split a chunk early so a file stays under the limit.
+        return self.cfg.max_file_bytes is not None and (
+            f.fh.tell() + self.cfg.chunk_size >= self.cfg.max_file_bytes
+        )
+
+    def write(self, topic: str, payload: bytes, publish_ns: int, log_ns: int) -> None:
+        if self._file is not None and self.due_split(log_ns):
+            self.split()
+        f = self._file or self._open(log_ns)
+        f.writer.add_message(
+            f.channel(topic), log_time=log_ns, data=payload, publish_time=publish_ns
+        )
+        f.stats.add(topic, log_ns)
+        self.topic_types[topic] = SAMPLE_BATCH_TYPE
+
+    def split(self) -> None:
+        """Close the current file (it is renamed to ``.mcap``); the next write opens a new one."""
+        f, self._file = self._file, None
+        if f is None:
+            return
+        f.finish()
+        self.closed.append(f.stats)
+        self.write_rosbag2_metadata()
+        log.info("closed %s (%d messages)", f.path.name, f.stats.messages)
+
+    def close(self) -> None:
+        """Finish the open file and the session. Idempotent."""
+        self.split()
+
+    def write_rosbag2_metadata(self) -> None:
+        """``metadata.yaml`` in rosbag2 layout (version 5) over the closed files."""
+        files = [s for s in self.closed if s.messages]
+        if not files:
+            return
+        start = min(s.start_ns or 0 for s in files)
+        end = max(s.end_ns or 0 for s in files)
+        counts: dict[str, int] = {}
+        for s in files:
+            for topic, n in s.per_topic.items():
+                counts[topic] = counts.get(topic, 0) + n
+        meta: dict[str, Any] = {
+            "rosbag2_bagfile_information": {
+                "version": 5,
+                "storage_identifier": "mcap",
+                "relative_file_paths": [s.path.name for s in files],
+                "duration": {"nanoseconds": end - start},
+                "starting_time": {"nanoseconds_since_epoch": start},
+                "message_count": sum(s.messages for s in files),
+                "topics_with_message_count": [
+                    {
+                        "topic_metadata": {
+                            "name": t,
+                            "type": self.topic_types[t],
+                            "serialization_format": "cdr",
+                            "offered_qos_profiles": "",
+                        },
+                        "message_count": n,
+                    }
+                    for t, n in sorted(counts.items())
+                ],
+                "compression_format": "",
+                "compression_mode": "",
+                "files": [
+                    {
+                        "path": s.path.name,
+                        "starting_time": {"nanoseconds_since_epoch": s.start_ns},
+                        "duration": {"nanoseconds": (s.end_ns or 0) - (s.start_ns or 0)},
+                        "message_count": s.messages,
+                    }
+                    for s in files
+                ],
+            }
+        }
+        tmp = self.dir / "metadata.yaml.tmp"
+        tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
+        os.replace(tmp, self.dir / "metadata.yaml")
+
+    def files(self) -> list[Path]:
+        return [s.path for s in self.closed]
