@@ -94,14 +94,36 @@ class StreamLoop:
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
         )
+        self.subscriber_timeout_s = 10.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
 
     def start(self) -> None:
         self._thread.start()
 
+    def wait_for_subscriber(self, timeout: float) -> bool:
+        """Wait until the hub's subscription reaches this publisher (bounded).
+
+        A put before that goes nowhere. Waiting here, before the device starts, keeps the first
+        batches of a run; after `timeout` the stream starts anyway and says so.
+        """
+        deadline = time.monotonic() + timeout
+        while not self._pub.matching_status.matching:
+            if time.monotonic() >= deadline:
+                self.events.emit(
+                    "warning",
+                    self.name,
+                    f"no hub subscribed after {timeout:g} s; "
+                    "acquiring anyway, batches are lost until one subscribes",
+                )
+                return False
+            if self._stop.wait(0.02):
+                return False
+        return True
+
     def _run(self) -> None:
         backoff = 0.5
+        self.wait_for_subscriber(self.subscriber_timeout_s)
         while not self._stop.is_set():
             try:
                 self.driver.open()
@@ -130,17 +152,17 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
-            index += scans
-            self.clock.observe(index, block.host_ns)
+            self.clock.observe(index + scans - 1, block.host_ns)
             payload = self.encoder.encode(
                 c.next_sequence,
-                self.clock.time_of(index - scans),
+                self.clock.time_of(index),
                 self.clock.period_ns,
                 values,
                 self.quality,
                 block.status,
             )
             self._pub.put(payload)
+            index += scans
             c.next_sequence += 1
             c.batches += 1
             c.scans += scans

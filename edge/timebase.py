@@ -1,9 +1,12 @@
 """Batch timing: a continuous fit of scan index to host time (CLOCK_REALTIME, PTP-disciplined).
 
 A batch's first-sample time comes from the fit, not from the moment a read returned: each read
-gives one (scan index, host time) pair; host time = t0 + index * period is fitted over a sliding
-window by least squares, so read jitter averages out and the fitted period follows the device's
-real rate (drift) instead of the nominal one.
+gives one (scan index, host time) pair, and host time = t0 + index * period is fitted over a
+sliding window. The period (slope) is a least-squares fit, so it follows the device's real rate
+(drift) instead of the nominal one. A read can only return *after* its last scan was sampled,
+never before, so the line is then lowered onto the earliest observation (the lower envelope):
+the fit sits on the fastest reads, not on the mean latency, and a batch is never stamped later
+than it was read.
 """
 
 from __future__ import annotations
@@ -23,29 +26,23 @@ class ScanClock:
         self._t0 = 0.0  # fitted host time of scan `_ref[0]`, relative to `_ref[1]`
         self._period = self.nominal_period_ns
 
-    def observe(self, end_index: int, host_ns: int) -> None:
-        """Record that scans [.., end_index) had all been acquired by host time `host_ns`."""
+    def observe(self, last_index: int, host_ns: int) -> None:
+        """Record that scan `last_index` (the last of a block) was acquired by `host_ns`."""
         if self._ref is None:
-            self._ref = (end_index, host_ns)
-        self._pairs.append((end_index, host_ns))
+            self._ref = (last_index, host_ns)
+        self._pairs.append((last_index, host_ns))
         ref_i, ref_t = self._ref
-        if len(self._pairs) < 3:
-            self._t0 = float(host_ns - ref_t) - (end_index - ref_i) * self._period
-            return
         arr = np.asarray(self._pairs, dtype=np.int64)
         x = (arr[:, 0] - ref_i).astype(np.float64)
         y = (arr[:, 1] - ref_t).astype(np.float64)
-        xm, ym = x.mean(), y.mean()
-        sxx = float(((x - xm) ** 2).sum())
-        if sxx > 0:
-            slope = float(((x - xm) * (y - ym)).sum()) / sxx
-            # A fit far from nominal means a stall or a clock step, not drift: keep nominal.
-            if abs(slope / self.nominal_period_ns - 1.0) < 0.01:
-                self._period = slope
-        self._t0 = ym - self._period * xm
+        slope = _hull_slope(x, y) if len(x) >= 3 else None
+        # A slope far from nominal means a stall or a clock step, not drift: keep the last one.
+        if slope is not None and abs(slope / self.nominal_period_ns - 1.0) < 0.01:
+            self._period = slope
+        self._t0 = float((y - self._period * x).min())
 
     def time_of(self, index: int) -> int:
-        """Fitted host time (ns) of scan `index` — the end of the scan's sampling instant."""
+        """Fitted host time (ns) at which scan `index` was sampled."""
         if self._ref is None:
             raise RuntimeError("no observation yet")
         ref_i, ref_t = self._ref
@@ -54,3 +51,28 @@ class ScanClock:
     @property
     def period_ns(self) -> float:
         return self._period
+
+
+def _hull_slope(x: np.ndarray, y: np.ndarray) -> float | None:
+    """Slope of the line under every point that touches the lower convex hull at mean(x).
+
+    Among lines that no observation lies below, it minimises the summed latency (a linear
+    programme whose optimum is a hull edge), so it rests on the fastest reads instead of
+    averaging the slow ones in. x must be increasing. Returns None when x has no spread.
+    """
+    hull: list[int] = []
+    for i in range(len(x)):  # Andrew's monotone chain, lower half
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            if (x[b] - x[a]) * (y[i] - y[a]) - (y[b] - y[a]) * (x[i] - x[a]) > 0:
+                break
+            hull.pop()
+        hull.append(i)
+    if len(hull) < 2:
+        return None
+    xm = float(x.mean())
+    hx = x[hull]
+    k = int(np.searchsorted(hx, xm))
+    k = min(max(k, 1), len(hull) - 1)
+    a, b = hull[k - 1], hull[k]
+    return float((y[b] - y[a]) / (x[b] - x[a]))

@@ -150,6 +150,14 @@ class Recorder:
             rate = cfg.streams[stream].rate_hz if cfg and stream in cfg.streams else None
             stats = StreamStats(node, stream, self.select(node, stream), rate)
             self.streams[(node, stream)] = stats
+            if h.sequence != 0:
+                log.warning(
+                    "%s/%s first seen at sequence %d: batches before it were not "
+                    "received by this hub",
+                    node,
+                    stream,
+                    h.sequence,
+                )
         if not stats.add(h.sequence, h.scan_count, h.samples, recv_ns):
             return
         if stats.recorded:

@@ -30,9 +30,13 @@ class DevicePacer:
         self._stop.clear()
 
     def wait_for(self, scans: int) -> int | None:
-        """Sleep until `scans` more scans exist; return the index of the first, None if stopped."""
+        """Sleep until `scans` more scans exist; return the index of the first, None if stopped.
+
+        Scan k is sampled at device time k / rate, so the block is complete once its last scan
+        (first + scans - 1) has been sampled.
+        """
         first = self.next_index
-        due_ns = self._start_mono + (first + scans) * 1e9 / self.rate_hz
+        due_ns = self._start_mono + (first + scans - 1) * 1e9 / self.rate_hz
         delay = (due_ns - time.monotonic_ns()) / 1e9
         if delay > 0 and self._stop.wait(delay):
             return None

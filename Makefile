@@ -1,0 +1,33 @@
+# The two commands: `make demo` and `make test`. Both set everything up on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint typecheck bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[hub,dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/fleetdaq demo $(ARGS)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check edge hub ptp tests bench
+	$(VENV)/bin/ruff format --check edge hub ptp tests bench
+
+typecheck: $(STAMP)
+	$(VENV)/bin/mypy
+
+test: lint typecheck
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) bench/record.py
+	$(PY) bench/edge.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,134 @@
+"""Recording sessions: split files, `.active` names, selection, metadata, rosbag2 layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+
+from edge.config import RecorderConfig
+from edge.wire import BatchEncoder, decode_batch
+from hub.recorder import StreamStats
+from hub.session import ACTIVE_SUFFIX, RecordingSession, StreamSelector
+from ptp.quality import UNSYNCED
+
+T0 = 1_795_000_000_000_000_000
+SEC = 1_000_000_000
+
+
+def _payloads(n: int, scans: int = 100, seed: int = 0) -> list[bytes]:
+    rng = np.random.default_rng(seed)
+    enc = BatchEncoder("wec", "t8", ("a", "b"), ("V", "V"))
+    return [
+        bytes(enc.encode(i, T0 + i * SEC // 10, 1e6, rng.normal(size=(scans, 2)), UNSYNCED))
+        for i in range(n)
+    ]
+
+
+def _session(tmp_path: Path, **kw: object) -> RecordingSession:
+    cfg = RecorderConfig.model_validate(kw)
+    return RecordingSession(tmp_path, "demo", ["wec"], cfg, "site: demo\n", T0)
+
+
+def test_files_split_every_file_duration_and_are_active_until_closed(tmp_path: Path):
+    s = _session(tmp_path, file_duration_s=1.0)
+    for i, p in enumerate(_payloads(35)):  # 3.5 s of batches at 10 Hz
+        s.write("/wec/t8", p, T0 + i * SEC // 10, T0 + i * SEC // 10)
+        active = list(s.dir.glob("*.mcap" + ACTIVE_SUFFIX))
+        assert len(active) == 1, "exactly one file is being written"
+        assert active[0] == s.current_file
+    assert [p.name for p in sorted(s.dir.glob("*.mcap"))] == [
+        f"{s.name}_{i:04d}.mcap" for i in range(3)
+    ]
+    s.close()
+    s.close()  # idempotent
+    assert not list(s.dir.glob("*" + ACTIVE_SUFFIX))
+    files = sorted(s.dir.glob("*.mcap"))
+    assert len(files) == 4
+    counts = []
+    for f in files:
+        with f.open("rb") as fh:
+            counts.append(sum(1 for _ in make_reader(fh).iter_messages()))
+    assert counts == [10, 10, 10, 5]
+
+
+def test_files_split_at_max_file_bytes(tmp_path: Path):
+    s = _session(tmp_path, file_duration_s=None, max_file_bytes=1_000_000, chunk_size=65536)
+    payloads = _payloads(60, scans=4000)  # 64 KB of noise each: ~3.8 MB in all
+    for i, p in enumerate(payloads):
+        s.write("/wec/t8", p, T0 + i, T0 + i)
+    s.close()
+    files = sorted(s.dir.glob("*.mcap"))
+    assert len(files) >= 4
+    assert all(f.stat().st_size <= 1_000_000 for f in files), [f.stat().st_size for f in files]
+
+
+def test_each_file_holds_session_metadata_config_and_schema(tmp_path: Path):
+    s = _session(tmp_path, file_duration_s=1.0)
+    for i, p in enumerate(_payloads(15)):
+        s.write("/wec/t8", p, T0 + i * SEC // 10, T0 + i * SEC // 10 + 5)
+    s.close()
+    for f in sorted(s.dir.glob("*.mcap")):
+        with f.open("rb") as fh:
+            r = make_reader(fh)
+            meta = {m.name: m.metadata for m in r.iter_metadata()}
+            assert meta["fleetdaq.session"]["site"] == "demo"
+            assert meta["fleetdaq.session"]["session"] == s.name
+            assert meta["fleetdaq.session"]["software"].startswith("fleetdaq ")
+            (att,) = list(r.iter_attachments())
+            assert att.name == "config.yaml"
+            assert yaml.safe_load(att.data) == {"site": "demo"}
+            summary = r.get_summary()
+            assert summary is not None
+            (schema,) = summary.schemas.values()
+            assert schema.encoding == "ros2msg"
+            for _, _, msg in r.iter_messages():
+                assert msg.log_time - msg.publish_time == 5
+
+
+def test_session_folder_opens_as_one_rosbag2_bag(tmp_path: Path):
+    s = _session(tmp_path, file_duration_s=1.0)
+    payloads = _payloads(25)
+    for i, p in enumerate(payloads):
+        s.write("/wec/t8", p, T0 + i * SEC // 10, T0 + i * SEC // 10)
+    s.close()
+    with AnyReader([s.dir]) as reader:
+        seqs = [reader.deserialize(raw, c.msgtype).sequence for c, _, raw in reader.messages()]
+    assert seqs == list(range(25))
+
+
+def test_selection_counts_every_include_and_exclude_pattern():
+    sel = StreamSelector(["wec/*", "shore/env"], ["wec/raw*", "*/debug"])
+    assert sel("wec", "t8")
+    assert sel("shore", "env")
+    assert not sel("shore", "wind")
+    assert not sel("wec", "raw_adc")
+    assert not sel("wec", "debug")
+    assert StreamSelector(["*"], [])("am-cell", "tc")
+
+
+def test_accounting_counts_gaps_and_duplicates():
+    st = StreamStats("wec", "t8", True)
+    for seq in [5, 6, 7, 10, 10, 8, 11]:
+        st.add(seq, scans=100, samples=800, recv_ns=seq)
+    assert st.first_sequence == 5
+    assert st.gaps == 2  # 8 and 9 missing when 10 arrived
+    assert st.duplicates == 2  # the second 10 and the late 8
+    assert st.batches == 5
+    assert st.samples == 4000
+
+
+def test_decoded_payload_from_file_equals_what_was_written(tmp_path: Path):
+    s = _session(tmp_path, file_duration_s=10.0)
+    payloads = _payloads(3)
+    for i, p in enumerate(payloads):
+        s.write("/wec/t8", p, T0 + i, T0 + i)
+    s.close()
+    (f,) = sorted(s.dir.glob("*.mcap"))
+    with f.open("rb") as fh:
+        got = [m.data for _, _, m in make_reader(fh).iter_messages()]
+    assert got == payloads
+    assert decode_batch(got[2]).header.sequence == 2

@@ -1,0 +1,127 @@
+"""Hub and two edges as separate OS processes over real Zenoh on loopback; files read back
+with rosbags."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from hub.session import ACTIVE_SUFFIX
+from tests.procs import Proc, free_port, wait_for_port
+
+RUN_S = 10.0
+SITE = """\
+site: systest
+hub:
+  listen: [tcp/127.0.0.1:{port}]
+  recorder: {{file_duration_s: 3}}
+nodes:
+  wec:
+    streams:
+      t8:
+        driver: wave_sim
+        rate_hz: 10000
+        scans_per_batch: 100
+        drift_ppm: 40
+        channels:
+          - {{name: heave, unit: m, scale: 0.5}}
+          - {{name: surge, unit: m}}
+          - {{name: pitch, unit: deg}}
+          - {{name: force, unit: kN, scale: 12.5, offset: -1}}
+  am-cell:
+    streams:
+      tc:
+        driver: thermocouple_sim
+        rate_hz: 4
+        channels: [{{name: substrate, unit: degC}}, {{name: cold_junction, unit: degC}}]
+"""
+RATES = {"/wec/t8": 10000.0, "/am-cell/tc": 4.0}
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, list[Proc]]]:
+    tmp = tmp_path_factory.mktemp("system")
+    port = free_port()
+    cfg = tmp / "site.yaml"
+    cfg.write_text(SITE.format(port=port))
+    data = tmp / "data"
+    procs: list[Proc] = []
+    try:
+        hub = Proc(["hub", "--config", str(cfg), "--data", str(data)], tmp / "hub.log")
+        procs.append(hub)
+        wait_for_port(port)
+        for node in ("wec", "am-cell"):
+            procs.append(Proc(["edge", "--config", str(cfg), "--node", node], tmp / f"{node}.log"))
+        time.sleep(RUN_S)  # the acquisition itself: a fixed stretch of real time
+        codes = {p.log_path.stem: p.terminate() for p in procs[1:]}
+        codes["hub"] = hub.terminate()
+        assert codes == {"wec": 0, "am-cell": 0, "hub": 0}, {
+            p.log_path.stem: p.output()[-2000:] for p in procs
+        }
+        (session,) = list(data.iterdir())
+        yield session, procs
+    finally:
+        for p in procs:
+            p.kill()
+
+
+def _messages(session: Path) -> dict[str, list[tuple[int, object]]]:
+    out: dict[str, list[tuple[int, object]]] = {}
+    files = sorted(session.glob("*.mcap"))
+    with AnyReader(files) as reader:
+        for conn, log_time, raw in reader.messages():
+            out.setdefault(conn.topic, []).append((log_time, reader.deserialize(raw, conn.msgtype)))
+    return out
+
+
+def test_every_file_is_closed_and_decodes(recording: tuple[Path, list[Proc]]):
+    session, _ = recording
+    assert not list(session.glob("*" + ACTIVE_SUFFIX))
+    files = sorted(session.glob("*.mcap"))
+    assert len(files) >= 3, "10 s at file_duration_s 3 makes at least 3 files"
+    for f in files:
+        with AnyReader([f]) as reader:
+            n = sum(1 for c, _, raw in reader.messages() if reader.deserialize(raw, c.msgtype))
+        assert n > 0
+
+
+def test_sequences_are_contiguous_across_files(recording: tuple[Path, list[Proc]]):
+    msgs = _messages(recording[0])
+    assert set(msgs) == set(RATES)
+    for topic, items in msgs.items():
+        seqs = [m.sequence for _, m in items]  # type: ignore[attr-defined]
+        assert seqs == list(range(len(seqs))), f"{topic}: not contiguous from 0"
+
+
+def test_sample_counts_match_rate_times_time(recording: tuple[Path, list[Proc]]):
+    msgs = _messages(recording[0])
+    for topic, items in msgs.items():
+        first, last = items[0][1], items[-1][1]
+        scans = sum(m.scan_count for _, m in items)  # type: ignore[attr-defined]
+        span_s = (
+            last.first_sample_time_ns
+            + last.scan_count * last.sample_period_ns  # type: ignore[attr-defined]
+            - first.first_sample_time_ns
+        ) / 1e9  # type: ignore[attr-defined]
+        expected = RATES[topic] * span_s
+        assert abs(scans - expected) <= 0.02 * expected + 1, (topic, scans, expected)
+        assert span_s > 0.7 * RUN_S, (topic, span_s)
+        values = np.concatenate([m.data for _, m in items])  # type: ignore[attr-defined]
+        assert values.size == scans * first.channel_count  # type: ignore[attr-defined]
+        assert np.isfinite(values).all()
+
+
+def test_first_sample_times_increase_and_sit_near_log_time(recording: tuple[Path, list[Proc]]):
+    msgs = _messages(recording[0])
+    for topic, items in msgs.items():
+        times = np.array([m.first_sample_time_ns for _, m in items])  # type: ignore[attr-defined]
+        assert (np.diff(times) > 0).all(), topic
+        lag_ms = np.array([log - m.first_sample_time_ns for log, m in items]) / 1e6  # type: ignore[attr-defined]
+        # Every batch of this site is at most 10 ms long (100 scans at 10 kHz, 1 scan at 4 Hz).
+        assert lag_ms.min() >= 0, (topic, lag_ms.min())
+        assert lag_ms.max() <= 50, (topic, np.percentile(lag_ms, [50, 99, 100]))
