@@ -1,17 +1,27 @@
 """The site file: one YAML describing the hub and every node, validated once into typed objects.
 
 It lives in `edge` (the lower layer) because both processes load it and `edge` never imports
-`hub`. Bad files raise `ConfigError` whose message is one line: ``file: key.path: problem``.
+`hub`. Bad files raise `ConfigError` whose message is one line: ``file: key.path: problem``
+(``file:LINE: ...`` when the line is known: YAML syntax errors and duplicate keys).
 """
 
 from __future__ import annotations
 
-import re
+import difflib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from edge.errors import ConfigError
 
@@ -19,34 +29,52 @@ NAME = r"^[a-z][a-z0-9_-]{0,62}$"
 """Node, stream and site names: they become Zenoh key chunks and MCAP topic names."""
 
 
+CHANNEL_NAME = r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$"
+
+
+def _no_boolean(value: Any) -> Any:
+    # Lax pydantic takes True as 1: `rate_hz: yes` would silently mean 1 Hz.
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got the YAML boolean {str(value).lower()}")
+    return value
+
+
+Float = Annotated[float, BeforeValidator(_no_boolean)]
+"""A float that refuses YAML booleans (true/false/yes/no/on/off)."""
+Int = Annotated[int, BeforeValidator(_no_boolean)]
+"""An int that refuses YAML booleans."""
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
 
 
 class Channel(_Strict):
     """One channel of a stream: engineering value = raw * scale + offset."""
 
-    name: Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$")]
+    name: Annotated[str, Field(pattern=CHANNEL_NAME)]
     unit: str = ""
-    scale: float = 1.0
-    offset: float = 0.0
+    scale: Float = 1.0
+    offset: Float = 0.0
 
 
 class _StreamBase(_Strict):
-    rate_hz: Annotated[float, Field(gt=0, le=1_000_000)]
+    rate_hz: Annotated[Float, Field(gt=0, le=1_000_000)]
     """Scan rate: every channel is sampled once per scan."""
-    scans_per_batch: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
+    scans_per_batch: Annotated[Int, Field(ge=1, le=1_000_000)] | None = None
     """Scans in one published batch; default ≈ 100 ms of data (at least 1 scan)."""
     channels: Annotated[list[Channel], Field(min_length=1, max_length=64)]
 
     @field_validator("channels")
     @classmethod
     def _unique_channel_names(cls, channels: list[Channel]) -> list[Channel]:
-        seen: set[str] = set()
-        for ch in channels:
+        seen: dict[str, int] = {}
+        for i, ch in enumerate(channels):
             if ch.name in seen:
-                raise ValueError(f"duplicate channel name {ch.name!r}")
-            seen.add(ch.name)
+                raise ValueError(
+                    f"duplicate channel name {ch.name!r} (channels[{seen[ch.name]}] and [{i}])"
+                )
+            seen[ch.name] = i
         return channels
 
     @property
@@ -58,27 +86,27 @@ class WaveSimStream(_StreamBase):
     """A LabJack-T8-like simulated stream: wave-like signals plus noise, in volts."""
 
     driver: Literal["wave_sim"]
-    wave_period_s: Annotated[float, Field(gt=0)] = 8.0
-    noise_v: Annotated[float, Field(ge=0)] = 0.002
-    drift_ppm: float = 0.0
+    wave_period_s: Annotated[Float, Field(gt=0)] = 8.0
+    noise_v: Annotated[Float, Field(ge=0)] = 0.002
+    drift_ppm: Float = 0.0
 
 
 class ThermocoupleSimStream(_StreamBase):
     """A MAX31855-like simulated thermocouple on a weld cell: heats per layer, cools between."""
 
     driver: Literal["thermocouple_sim"]
-    ambient_c: float = 25.0
-    peak_c: float = 450.0
-    layer_s: Annotated[float, Field(gt=0)] = 20.0
-    cool_s: Annotated[float, Field(gt=0)] = 15.0
-    drift_ppm: float = 0.0
+    ambient_c: Float = 25.0
+    peak_c: Float = 450.0
+    layer_s: Annotated[Float, Field(gt=0)] = 20.0
+    cool_s: Annotated[Float, Field(gt=0)] = 15.0
+    drift_ppm: Float = 0.0
 
 
 class EnvironmentSimStream(_StreamBase):
     """A slow simulated environment sensor (air temperature, humidity, pressure)."""
 
     driver: Literal["environment_sim"]
-    drift_ppm: float = 0.0
+    drift_ppm: Float = 0.0
 
 
 StreamConfig = Annotated[
@@ -86,26 +114,44 @@ StreamConfig = Annotated[
     Field(discriminator="driver"),
 ]
 
+_STREAM_BY_DRIVER: dict[str, type[_StreamBase]] = {
+    "wave_sim": WaveSimStream,
+    "thermocouple_sim": ThermocoupleSimStream,
+    "environment_sim": EnvironmentSimStream,
+}
+DRIVERS = tuple(_STREAM_BY_DRIVER)
+"""The `driver:` values the schema accepts (the union tags of StreamConfig)."""
+
+
+def _not_reserved(name: str) -> str:
+    if name == "hub":
+        raise ValueError("'hub' is reserved for the hub's own keys; rename the node")
+    return name
+
+
+NodeName = Annotated[str, Field(pattern=NAME), AfterValidator(_not_reserved)]
+StreamName = Annotated[str, Field(pattern=NAME)]
+
 
 class NodeConfig(_Strict):
     """One edge machine."""
 
     connect: list[str] | None = None
     """Zenoh endpoints of the hub's router; default: the hub's listen endpoints."""
-    streams: Annotated[dict[Annotated[str, Field(pattern=NAME)], StreamConfig], Field(min_length=1)]
+    streams: Annotated[dict[StreamName, StreamConfig], Field(min_length=1)]
 
 
 class RecorderConfig(_Strict):
     """What the hub records and how files are split (MODAQ 2: fileDuration, loggedTopics)."""
 
-    file_duration_s: Annotated[float, Field(gt=0)] | None = 60.0
-    max_file_bytes: Annotated[int, Field(ge=1_000_000)] | None = None
+    file_duration_s: Annotated[Float, Field(gt=0)] | None = 60.0
+    max_file_bytes: Annotated[Int, Field(ge=1_000_000)] | None = None
     include: Annotated[list[str], Field(min_length=1)] = ["*"]
     """Patterns on ``node/stream`` (fnmatch); a stream is recorded when any include matches..."""
     exclude: list[str] = []
     """...and no exclude does."""
     compression: Literal["zstd", "lz4", "none"] = "zstd"
-    chunk_size: Annotated[int, Field(ge=4096, le=64 * 1024 * 1024)] = 1024 * 1024
+    chunk_size: Annotated[Int, Field(ge=4096, le=64 * 1024 * 1024)] = 1024 * 1024
 
     @model_validator(mode="after")
     def _some_split(self) -> RecorderConfig:
@@ -126,98 +172,246 @@ class SiteConfig(_Strict):
     site: Annotated[str, Field(pattern=NAME)]
     description: str = ""
     hub: HubConfig = HubConfig()
-    nodes: Annotated[dict[Annotated[str, Field(pattern=NAME)], NodeConfig], Field(min_length=1)]
-
-    @field_validator("nodes")
-    @classmethod
-    def _hub_is_reserved(cls, nodes: dict[str, NodeConfig]) -> dict[str, NodeConfig]:
-        if "hub" in nodes:
-            raise ValueError("'hub' is reserved for the hub's own keys; rename the node")
-        return nodes
+    nodes: Annotated[dict[NodeName, NodeConfig], Field(min_length=1)]
 
     def endpoints_for(self, node: str) -> list[str]:
         return self.nodes[node].connect or list(self.hub.listen)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """A SafeLoader that refuses duplicate mapping keys (PyYAML silently keeps the last)."""
+    """A SafeLoader for site files; `_duplicate_keys` runs on its node graph before construction.
+
+    PyYAML silently keeps the last of two equal keys: two nodes named ``wec`` would quietly
+    become one. The check works on the composed nodes so that it knows the key path and the
+    lines of both keys; a merge (``<<: *base``) followed by an override is not a duplicate.
+    """
 
 
-def _construct_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode) -> dict[Any, Any]:
-    loader.flatten_mapping(node)
-    out: dict[Any, Any] = {}
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if key in out:
-            raise _DuplicateKey(key, key_node.start_mark.line + 1)
-        out[key] = loader.construct_object(value_node, deep=True)
-    return out
+_MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
-_UniqueKeyLoader.add_constructor(
-    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
-    _construct_mapping,
-)
+def _duplicate_keys(root: yaml.Node) -> list[tuple[int, int, tuple[str | int, ...]]]:
+    """Every repeated key as (line, first line, key path), in document order."""
+    found: list[tuple[int, int, tuple[str | int, ...]]] = []
+    visited: set[int] = set()  # aliases may share (or even contain) nodes
+    stack: list[tuple[yaml.Node, tuple[str | int, ...]]] = [(root, ())]
+    while stack:
+        node, path = stack.pop()
+        if id(node) in visited:
+            continue
+        visited.add(id(node))
+        children: list[tuple[yaml.Node, tuple[str | int, ...]]] = []
+        if isinstance(node, yaml.MappingNode):
+            first: dict[tuple[str, str], int] = {}
+            for key_node, value_node in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == _MERGE_TAG:
+                    children.append((value_node, path))
+                    continue
+                ident = (str(key_node.tag), str(key_node.value))
+                line = key_node.start_mark.line + 1
+                if ident in first:
+                    found.append((line, first[ident], (*path, str(key_node.value))))
+                else:
+                    first[ident] = line
+                children.append((value_node, (*path, str(key_node.value))))
+        elif isinstance(node, yaml.SequenceNode):
+            children = [(item, (*path, i)) for i, item in enumerate(node.value)]
+        stack.extend(reversed(children))
+    return sorted(found)
 
 
-class _DuplicateKey(Exception):
-    def __init__(self, key: object, line: int) -> None:
-        super().__init__(key, line)
-        self.key = key
-        self.line = line
+def _load_yaml(text: str, source: str) -> Any:
+    loader = _UniqueKeyLoader(text)
+    try:
+        root = loader.get_single_node()
+        if root is None:
+            return None
+        duplicates = _duplicate_keys(root)
+        if duplicates:
+            line, first, path = duplicates[0]
+            parent = path[:-1]
+            what = "key"
+            if parent == ("nodes",):
+                what = "node name"
+            elif len(parent) == 3 and parent[0] == "nodes" and parent[2] == "streams":
+                what = "stream name"
+            more = f" (+{len(duplicates) - 1} more)" if len(duplicates) > 1 else ""
+            raise ConfigError(
+                f"{source}:{line}: {_path(path)}: duplicate {what} {path[-1]!r}"
+                f" (first on line {first}){more}"
+            )
+        return loader.construct_document(root)
+    finally:
+        loader.dispose()
 
 
-def _loc(loc: tuple[int | str, ...]) -> str:
-    parts: list[str] = []
-    for item in loc:
+def _path(parts: tuple[str | int, ...] | list[str | int]) -> str:
+    out: list[str] = []
+    for item in parts:
         if isinstance(item, int):
-            parts.append(f"[{item}]")
-        elif item in {"wave_sim", "thermocouple_sim", "environment_sim"}:
-            continue  # pydantic puts the union tag in the path; the user never wrote it
+            out.append(f"[{item}]")
         else:
-            parts.append(("." if parts else "") + item)
-    return "".join(parts) or "(top level)"
+            out.append(("." if out else "") + item)
+    return "".join(out) or "(top level)"
+
+
+def _user_loc(loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
+    """Pydantic's error location as the user wrote it: without the union tag and `[key]`."""
+    out: list[int | str] = []
+    for i, item in enumerate(loc):
+        if item == "[key]":
+            continue  # the error is about a mapping key itself; the path already ends with it
+        if i == 4 and loc[0] == "nodes" and loc[2] == "streams" and item in DRIVERS:
+            continue  # pydantic puts the union tag in the path; the user never wrote it
+        out.append(item)
+    return tuple(out)
+
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The model validating the mapping at pydantic location `loc` (for "did you mean")."""
+    fixed: dict[tuple[int | str, ...], type[BaseModel]] = {
+        (): SiteConfig,
+        ("hub",): HubConfig,
+        ("hub", "recorder"): RecorderConfig,
+    }
+    model: type[BaseModel] | None = fixed.get(loc)
+    if len(loc) == 2 and loc[0] == "nodes":
+        model = NodeConfig
+    elif len(loc) >= 5 and loc[0] == "nodes" and loc[2] == "streams":
+        stream = _STREAM_BY_DRIVER.get(str(loc[4]))
+        if len(loc) == 5:
+            model = stream
+        elif len(loc) == 7 and loc[5] == "channels" and stream is not None:
+            model = Channel
+    return model
+
+
+def _short(value: object) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _unknown_key(loc: tuple[int | str, ...]) -> str:
+    model = _model_at(loc[:-1])
+    if model is None:
+        return "unknown key"
+    allowed = list(model.model_fields)
+    close = difflib.get_close_matches(str(loc[-1]), allowed, n=1)
+    if close:
+        return f"unknown key (did you mean {close[0]!r}?)"
+    return f"unknown key (allowed: {', '.join(allowed)})"
+
+
+def _bad_name(loc: tuple[int | str, ...], name: object, pattern: object) -> str:
+    what = "name"
+    if loc and loc[-1] == "[key]" and len(loc) >= 3:
+        what = {"nodes": "node name", "streams": "stream name"}.get(str(loc[-3]), "name")
+    elif loc == ("site",):
+        what = "site name"
+    elif loc and loc[-1] == "name":
+        what = "channel name"
+    rule = (
+        "letters, digits, '_', '.' or '-', starting with a letter, at most 63"
+        if pattern == CHANNEL_NAME
+        else "lower-case letters, digits, '_' or '-', starting with a letter, at most 63"
+    )
+    return f"invalid {what} {name!r} (use {rule})"
+
+
+def _limit(kind: str, ctx: dict[str, Any], got: str) -> str | None:
+    """Bounds and lengths, said plainly: "must be greater than 0 (got -100)"."""
+    bounds = {
+        "greater_than": ("must be greater than", "gt"),
+        "greater_than_equal": ("must be at least", "ge"),
+        "less_than": ("must be less than", "lt"),
+        "less_than_equal": ("must be at most", "le"),
+    }
+    if kind in bounds:
+        words, key = bounds[kind]
+        return f"{words} {ctx.get(key)} (got {got})"
+    if kind == "too_short":
+        if ctx.get("actual_length") == 0:
+            return "must not be empty"
+        return f"must have at least {ctx.get('min_length')} items (got {ctx.get('actual_length')})"
+    if kind == "too_long":
+        return f"must have at most {ctx.get('max_length')} items (got {ctx.get('actual_length')})"
+    return None
 
 
 def _describe(err: dict[str, Any]) -> str:
-    kind = err["type"]
+    kind = str(err["type"])
+    loc: tuple[int | str, ...] = tuple(err["loc"])
+    ctx: dict[str, Any] = err.get("ctx") or {}
+    got = _short(err.get("input"))
+    fixed = {
+        "missing": "required key is missing",
+        "union_tag_invalid": (
+            f"unknown driver {ctx.get('tag')!r} (expected one of {', '.join(DRIVERS)})"
+        ),
+        "union_tag_not_found": f"missing 'driver' (one of {', '.join(DRIVERS)})",
+        "dict_type": f"expected a mapping of keys, got {got}",
+        "model_type": f"expected a mapping of keys, got {got}",
+        "model_attributes_type": f"expected a mapping of keys, got {got}",
+        "list_type": f"expected a list, got {got}",
+    }
+    if kind in fixed:
+        return fixed[kind]
+    limit = _limit(kind, ctx, got)
+    if limit is not None:
+        return limit
     if kind == "extra_forbidden":
-        return "unknown key"
-    if kind == "missing":
-        return "required key is missing"
-    if kind == "union_tag_invalid":
-        return f"unknown driver {err['input']!r} (expected one of {err['ctx']['expected_tags']})"
-    if kind == "union_tag_not_found":
-        return "missing 'driver'"
-    msg = str(err["msg"])
-    msg = re.sub(r"^Value error, ", "", msg)
-    if kind in {"string_pattern_mismatch"}:
-        msg = f"invalid name {err['input']!r} (lower-case letters, digits, '_' or '-')"
+        return _unknown_key(loc)
+    if kind == "string_pattern_mismatch":
+        return _bad_name(loc, err.get("input"), ctx.get("pattern"))
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    if kind.endswith(("_type", "_parsing")) or kind == "finite_number":
+        msg = f"{msg} (got {got})"
     return msg
+
+
+def _one_line(text: str) -> str:
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
 
 
 def parse_config(text: str, source: str) -> SiteConfig:
     """Validate the text of a site file. `source` names it in errors."""
     try:
-        raw = yaml.load(text, Loader=_UniqueKeyLoader)
-    except _DuplicateKey as err:
-        raise ConfigError(f"{source}:{err.line}: duplicate key {err.key!r}") from None
+        raw = _load_yaml(text, source)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ConfigError(f"{source}{where}: not valid YAML: {problem}") from None
+        problem = getattr(err, "problem", None) or str(err)
+        context = getattr(err, "context", None)
+        if context and problem.startswith("but "):
+            problem = f"{context}, {problem}"  # "expected a single document..., but found..."
+        raise ConfigError(_one_line(f"{source}{where}: not valid YAML: {problem}")) from None
+    except RecursionError:
+        raise ConfigError(f"{source}: not valid YAML: nested too deeply") from None
+    if raw is None:
+        raise ConfigError(f"{source}: (top level): the file is empty (expected site:, nodes:, ...)")
     if not isinstance(raw, dict):
-        raise ConfigError(f"{source}: (top level): expected a mapping of keys, got {raw!r:.40}")
+        raise ConfigError(
+            _one_line(
+                f"{source}: (top level): expected a mapping of keys (site:, nodes:, ...),"
+                f" got {_short(raw)}"
+            )
+        )
     try:
         return SiteConfig.model_validate(raw)
     except ValidationError as err:
         errors = err.errors()
         first = errors[0]
         more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise ConfigError(
-            f"{source}: {_loc(first['loc'])}: {_describe(dict(first))}{more}"
-        ) from None
+        where = _path(list(_user_loc(tuple(first["loc"]))))
+        raise ConfigError(_one_line(f"{source}: {where}: {_describe(dict(first))}{more}")) from None
 
 
 def load_config(path: str | Path) -> SiteConfig:

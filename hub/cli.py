@@ -62,7 +62,7 @@ def main() -> None:
 
 
 @main.command()
-@click.argument("config", type=click.Path(dir_okay=False))
+@click.argument("config", type=click.Path())
 def check(config: str) -> None:
     """Validate a site file: prints what is wrong (file, key path, problem) and exits 2."""
     site = _load(config)
@@ -71,7 +71,7 @@ def check(config: str) -> None:
 
 
 @main.command()
-@click.option("--config", "config", required=True, type=click.Path(dir_okay=False))
+@click.option("--config", "config", required=True, type=click.Path())
 @click.option("--node", required=True, help="Which node of the site file this machine is.")
 @click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
 @click.option("-v", "--verbose", is_flag=True)
@@ -93,7 +93,7 @@ def edge(config: str, node: str, connect: tuple[str, ...], verbose: bool) -> Non
 
 
 @main.command()
-@click.option("--config", "config", required=True, type=click.Path(dir_okay=False))
+@click.option("--config", "config", required=True, type=click.Path())
 @click.option("--data", "data_dir", type=click.Path(file_okay=False), help="Recording root.")
 @click.option("--listen", multiple=True, help="Router endpoint(s), overriding the site file.")
 @click.option("-v", "--verbose", is_flag=True)
@@ -127,7 +127,7 @@ def _progress_line(summary: dict[str, Any]) -> str:
 @click.option(
     "--config",
     "config",
-    type=click.Path(dir_okay=False),
+    type=click.Path(),
     help="Site file (default: the embedded demo site).",
 )
 @click.option(

@@ -1,0 +1,132 @@
+"""The `fleetdaq` command as a user runs it: demo, Ctrl-C, clear errors, a lean edge."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hub.session import ACTIVE_SUFFIX
+from tests.procs import REPO, free_port
+
+DEMO_SITE = """\
+site: clitest
+hub: {{listen: [tcp/127.0.0.1:{port}], recorder: {{file_duration_s: 2}}}}
+nodes:
+  wec:
+    streams:
+      t8:
+        driver: wave_sim
+        rate_hz: 2000
+        channels: [{{name: heave, unit: m}}, {{name: surge, unit: m}}]
+  shore:
+    streams:
+      env: {{driver: environment_sim, rate_hz: 2, channels: [{{name: air, unit: degC}}]}}
+"""
+
+
+def _fleetdaq(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "hub.cli", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+@pytest.fixture
+def site(tmp_path: Path) -> Path:
+    p = tmp_path / "site.yaml"
+    p.write_text(DEMO_SITE.format(port=free_port()))
+    return p
+
+
+def test_demo_runs_unattended_and_prints_a_json_summary(site: Path, tmp_path: Path):
+    r = _fleetdaq(
+        "demo", "--config", str(site), "--duration", "5", "--data", str(tmp_path / "rec"), "--json"
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads(r.stdout)
+    assert set(summary["streams"]) == {"wec/t8", "shore/env"}
+    for name, s in summary["streams"].items():
+        assert s["gaps"] == 0, name
+        assert s["first_sequence"] == 0, name
+        assert s["batches"] == s["last_sequence"] + 1, name
+    assert summary["streams"]["wec/t8"]["samples"] >= 2000 * 2 * 3
+    assert summary["files"], "files written"
+    assert all(Path(f).exists() and f.endswith(".mcap") for f in summary["files"])
+    assert summary["edge_failures"] == []
+    assert "gaps" in r.stderr, "the table is shown"
+
+
+def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_path: Path):
+    rec = tmp_path / "rec"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "hub.cli", "demo", "--config", str(site), "--data", str(rec)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not list(rec.glob("*/*.mcap" + ACTIVE_SUFFIX)):
+            assert time.monotonic() < deadline, "the demo never started recording"
+            time.sleep(0.1)
+        time.sleep(2)
+        # Ctrl-C in a terminal reaches the whole foreground process group.
+        import os
+
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0, err[-3000:]
+    assert "Traceback" not in err
+    (session,) = list(rec.iterdir())
+    assert not list(session.glob("*" + ACTIVE_SUFFIX))
+    assert list(session.glob("*.mcap"))
+    assert (session / "metadata.yaml").exists()
+
+
+def test_unknown_node_is_one_line_and_exit_2(site: Path):
+    r = _fleetdaq("edge", "--config", str(site), "--node", "buoy-7")
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0
+    assert "buoy-7" in r.stderr
+    assert str(site) in r.stderr
+
+
+def test_hub_says_clearly_when_its_port_is_taken(site: Path, tmp_path: Path):
+    port = int(site.read_text().split("127.0.0.1:")[1].split("]")[0])
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", port))
+        s.listen()
+        r = _fleetdaq("hub", "--config", str(site), "--data", str(tmp_path / "d"), timeout=60)
+    assert r.returncode == 1
+    assert "cannot start the Zenoh router" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_an_edge_loads_no_hub_code_or_hub_dependencies():
+    code = (
+        "import sys, edge.agent, edge.drivers.wave_sim, hub.cli;"
+        "bad = [m for m in sys.modules if m.split('.')[0] in {'mcap', 'rich', 'zstandard'}"
+        " or m in {'hub.recorder', 'hub.session', 'hub.service'}];"
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=False
+    )
+    assert r.returncode == 0, r.stdout + r.stderr

@@ -1,0 +1,300 @@
+"""The site file: good files load into typed objects; every bad file is refused by
+`fleetdaq check` with ONE line (file, key path, problem), exit code 2 and no traceback.
+
+The CLI runs as a real subprocess (`python -m hub.cli check FILE`). All of them are started
+at once by a module fixture, so the ~30 runs cost about as much as a few.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import get_args
+
+import pytest
+
+from edge.config import (
+    DRIVERS,
+    Channel,
+    EnvironmentSimStream,
+    SiteConfig,
+    StreamConfig,
+    ThermocoupleSimStream,
+    WaveSimStream,
+    demo_config_path,
+    effective_yaml,
+    load_config,
+    parse_config,
+)
+from edge.errors import ConfigError
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO
+MISSING = DATA / "no_such_site.yaml"
+
+# Every bad file: (where, problem). `where` is the key path the message must name right after
+# the file (a "file:LINE:" prefix is allowed, duplicate keys give one); for files that are
+# not YAML at all there is no key path, and `where` is the ":LINE" locator instead.
+BAD: dict[str, tuple[str, str]] = {
+    "bad_unknown_top_level_key.yaml": ("recorder", "unknown key"),
+    "bad_missing_site.yaml": ("site", "required key is missing"),
+    "bad_unknown_channel_key.yaml": (
+        "nodes.wec.streams.t8.channels[1].units",
+        "unknown key (did you mean 'unit'?)",
+    ),
+    "bad_rate_wrong_type.yaml": ("nodes.wec.streams.t8.rate_hz", "valid number"),
+    "bad_rate_zero.yaml": ("nodes.wec.streams.t8.rate_hz", "must be greater than 0"),
+    "bad_rate_negative.yaml": ("nodes.wec.streams.t8.rate_hz", "must be greater than 0"),
+    "bad_rate_boolean.yaml": ("nodes.wec.streams.t8.rate_hz", "YAML boolean"),
+    "bad_scale_not_finite.yaml": ("nodes.wec.streams.t8.channels[0].scale", "finite number"),
+    "bad_channels_empty.yaml": ("nodes.wec.streams.t8.channels", "must not be empty"),
+    "bad_channels_missing.yaml": ("nodes.wec.streams.t8.channels", "required key is missing"),
+    "bad_duplicate_node.yaml": ("nodes.wec", "duplicate node name 'wec'"),
+    "bad_duplicate_stream.yaml": ("nodes.wec.streams.t8", "duplicate stream name 't8'"),
+    "bad_duplicate_channel.yaml": (
+        "nodes.wec.streams.t8.channels",
+        "duplicate channel name 'heave'",
+    ),
+    "bad_unknown_driver.yaml": ("nodes.wec.streams.t8", "unknown driver 'labjack_t8'"),
+    "bad_missing_driver.yaml": ("nodes.wec.streams.t8", "missing 'driver'"),
+    "bad_node_name_upper_case.yaml": ("nodes.WEC", "invalid node name 'WEC'"),
+    "bad_node_name_spaces.yaml": ("nodes.wave rig", "invalid node name 'wave rig'"),
+    "bad_node_named_hub.yaml": ("nodes.hub", "'hub' is reserved"),
+    "bad_channel_name_invalid.yaml": (
+        "nodes.wec.streams.t8.channels[0].name",
+        "invalid channel name '1st_load_cell'",
+    ),
+    "bad_recorder_never_splits.yaml": ("hub.recorder", "never split"),
+    "bad_recorder_include_empty.yaml": ("hub.recorder.include", "must not be empty"),
+    "bad_nodes_is_a_list.yaml": ("nodes", "expected a mapping"),
+    "bad_top_level_list.yaml": ("(top level)", "expected a mapping"),
+    "bad_empty.yaml": ("(top level)", "the file is empty"),
+    "bad_not_yaml_tab.yaml": (":5", "not valid YAML"),
+    "bad_not_yaml_unclosed.yaml": (":7", "not valid YAML"),
+}
+
+GOOD = sorted(p.name for p in (REPO / DATA).glob("good_*.yaml"))
+SHIPPED = [Path("config/demo.yaml"), Path("config/site.example.yaml")]
+
+
+def _check(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "hub.cli", "check", str(path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def checked() -> dict[Path, subprocess.CompletedProcess[str]]:
+    """`fleetdaq check` on every file under test, run concurrently, keyed by the path given."""
+    paths = [DATA / name for name in BAD] + [DATA / name for name in GOOD] + SHIPPED
+    paths.append(MISSING)
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        return dict(zip(paths, pool.map(_check, paths), strict=True))
+
+
+def _the_one_line(result: subprocess.CompletedProcess[str]) -> str:
+    assert "Traceback" not in result.stderr, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{result.stderr}"
+    assert result.stdout == ""
+    return lines[0]
+
+
+# --- bad files --------------------------------------------------------------------------
+
+
+def test_every_bad_file_on_disk_has_an_expectation_in_the_table() -> None:
+    on_disk = {p.name for p in (REPO / DATA).glob("bad_*.yaml")}
+    assert on_disk == set(BAD)
+    assert len(on_disk) >= 12
+
+
+@pytest.mark.parametrize(
+    ("name", "where", "problem"),
+    [pytest.param(name, *expected, id=name[4:-5]) for name, expected in BAD.items()],
+)
+def test_bad_site_file_is_refused_with_one_line_naming_file_and_key_path(
+    checked: dict[Path, subprocess.CompletedProcess[str]], name: str, where: str, problem: str
+) -> None:
+    path = DATA / name
+    result = checked[path]
+    line = _the_one_line(result)
+    assert result.returncode == 2, line
+    assert line.startswith(str(path)), line
+    if where.startswith(":"):  # not YAML at all: the line number stands in for the key path
+        assert line.startswith(f"{path}{where}: "), line
+    else:
+        assert re.match(rf"{re.escape(str(path))}(:\d+)?: {re.escape(where)}: ", line), line
+    assert problem in line
+
+
+def test_bad_files_each_say_what_is_wrong_in_a_comment_on_top() -> None:
+    for name in BAD:
+        first = (REPO / DATA / name).read_text(encoding="utf-8").splitlines()[0]
+        assert first.startswith("# Bad: "), name
+
+
+def test_missing_file_is_refused_with_file_not_found_and_exit_2(
+    checked: dict[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    result = checked[MISSING]
+    line = _the_one_line(result)
+    assert result.returncode == 2
+    assert line == f"{MISSING}: file not found"
+
+
+def test_directory_instead_of_a_file_is_refused_in_one_line(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r": is a directory"):
+        load_config(tmp_path)
+
+
+def test_duplicate_key_names_the_line_of_both_keys() -> None:
+    text = "site: a\nnodes:\n  n:\n    streams:\n      s: {driver: wave_sim}\n  n: {}\n"
+    with pytest.raises(ConfigError) as err:
+        parse_config(text, "site.yaml")
+    assert str(err.value) == "site.yaml:6: nodes.n: duplicate node name 'n' (first on line 3)"
+
+
+def test_stream_named_like_a_driver_keeps_its_name_in_the_key_path() -> None:
+    text = (
+        "site: a\nnodes:\n  n:\n    streams:\n"
+        "      wave_sim: {driver: wave_sim, rate_hz: 0, channels: [{name: x}]}\n"
+    )
+    with pytest.raises(ConfigError, match=r"^f: nodes\.n\.streams\.wave_sim\.rate_hz: "):
+        parse_config(text, "f")
+
+
+def test_several_problems_report_the_first_and_count_the_rest() -> None:
+    text = "site: A\nextra: 1\nnodes: {}\n"
+    with pytest.raises(ConfigError) as err:
+        parse_config(text, "f")
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith("f: site: invalid site name 'A'")
+    assert message.endswith("(+2 more)")
+
+
+def test_the_drivers_named_in_errors_are_exactly_the_stream_union_tags() -> None:
+    union = get_args(get_args(StreamConfig)[0])
+    tags = {get_args(cls.model_fields["driver"].annotation)[0] for cls in union}
+    assert set(DRIVERS) == tags
+
+
+# --- good files -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", [DATA / n for n in GOOD] + SHIPPED, ids=str)
+def test_good_site_file_passes_check_with_exit_0(
+    checked: dict[Path, subprocess.CompletedProcess[str]], path: Path
+) -> None:
+    result = checked[path]
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+    assert result.stdout.startswith(f"{path}: ok: site ")
+
+
+def test_there_are_good_files_under_test() -> None:
+    assert {"good_minimal.yaml", "good_full.yaml"} <= set(GOOD)
+
+
+def test_load_config_returns_typed_objects_with_defaults_filled() -> None:
+    site = load_config(REPO / DATA / "good_minimal.yaml")
+    assert isinstance(site, SiteConfig)
+    assert site.site == "bench"
+    assert site.description == ""
+    assert site.hub.listen == ["tcp/127.0.0.1:7447"]
+    assert site.hub.data_dir == "data"
+    recorder = site.hub.recorder
+    assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, None)
+    assert (recorder.include, recorder.exclude) == (["*"], [])
+    assert (recorder.compression, recorder.chunk_size) == ("zstd", 1024 * 1024)
+    stream = site.nodes["rig"].streams["daq"]
+    assert isinstance(stream, WaveSimStream)
+    assert stream.rate_hz == 1000.0
+    assert stream.scans_per_batch is None
+    assert stream.batch_scans == 100  # 100 ms of data at 1 kHz
+    assert stream.channels == [Channel(name="load", unit="", scale=1.0, offset=0.0)]
+
+
+def test_a_node_without_connect_falls_back_to_the_hub_listen_endpoints() -> None:
+    site = load_config(REPO / DATA / "good_minimal.yaml")
+    assert site.nodes["rig"].connect is None
+    assert site.endpoints_for("rig") == site.hub.listen
+
+
+def test_a_node_with_connect_uses_its_own_endpoints() -> None:
+    site = load_config(REPO / DATA / "good_full.yaml")
+    assert site.endpoints_for("wec") == ["tcp/10.0.0.1:7447"]
+    assert site.endpoints_for("am-cell") == ["tcp/0.0.0.0:7447", "tcp/[::]:7447"]
+
+
+def test_full_file_sets_every_recorder_option_and_each_driver_type() -> None:
+    site = load_config(REPO / DATA / "good_full.yaml")
+    recorder = site.hub.recorder
+    assert recorder.file_duration_s == 300.0
+    assert recorder.max_file_bytes == 500_000_000
+    assert recorder.include == ["wec/*", "am-cell/*"]
+    assert recorder.exclude == ["wec/debug"]
+    assert recorder.compression == "lz4"
+    assert recorder.chunk_size == 4 * 1024 * 1024
+    assert isinstance(site.nodes["wec"].streams["t8"], WaveSimStream)
+    assert isinstance(site.nodes["am-cell"].streams["tc"], ThermocoupleSimStream)
+    assert isinstance(site.nodes["env_1"].streams["air"], EnvironmentSimStream)
+    assert site.nodes["wec"].streams["t8"].batch_scans == 2000  # explicit scans_per_batch
+
+
+@pytest.mark.parametrize(
+    ("rate_hz", "scans"),
+    [(40_000, 4000), (10_000, 1000), (4, 1), (1, 1), (0.5, 1)],
+)
+def test_default_batch_is_about_100_ms_of_data_and_at_least_one_scan(
+    rate_hz: float, scans: int
+) -> None:
+    stream = WaveSimStream(driver="wave_sim", rate_hz=rate_hz, channels=[Channel(name="x")])
+    assert stream.batch_scans == scans
+
+
+def test_yaml_merge_with_an_override_is_not_a_duplicate_key() -> None:
+    site = load_config(REPO / DATA / "good_merge_override.yaml")
+    fast, slow = site.nodes["rig-a"].streams["fast"], site.nodes["rig-a"].streams["slow"]
+    assert (fast.rate_hz, slow.rate_hz) == (10_000.0, 100.0)
+    assert slow.channels == fast.channels
+
+
+@pytest.mark.parametrize("path", [DATA / n for n in GOOD] + SHIPPED, ids=str)
+def test_effective_yaml_round_trips_to_an_equal_site_config(path: Path) -> None:
+    site = load_config(REPO / path)
+    text = effective_yaml(site)
+    assert parse_config(text, "effective.yaml") == site
+    assert "chunk_size:" in text  # defaults are written out, not left implicit
+
+
+def test_demo_config_path_is_the_shipped_demo_file() -> None:
+    assert demo_config_path() == REPO / "config" / "demo.yaml"
+    assert load_config(demo_config_path()).site == "demo"
+
+
+def test_site_example_describes_a_wave_energy_site_with_three_edges() -> None:
+    site = load_config(REPO / "config" / "site.example.yaml")
+    assert set(site.nodes) == {"wec-t8", "am-cell", "env"}
+    assert site.hub.listen == ["tcp/0.0.0.0:7447"]
+    assert site.hub.data_dir == "/var/lib/fleetdaq/data"
+    recorder = site.hub.recorder
+    assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, 2_000_000_000)
+    assert recorder.include != ["*"]
+    assert recorder.exclude
+    for name, node in site.nodes.items():
+        assert node.connect == ["tcp/hub.example:7447"], name
+    t8 = site.nodes["wec-t8"].streams["t8"]
+    assert len(t8.channels) == 8
+    assert 10_000 <= t8.rate_hz <= 40_000
+    assert all(s.rate_hz == 4 for s in site.nodes["am-cell"].streams.values())
+    assert site.nodes["env"].streams["air"].rate_hz == 1
