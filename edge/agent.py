@@ -24,7 +24,15 @@ from edge.config import SiteConfig, StreamConfig
 from edge.drivers import Driver, create_driver
 from edge.errors import DriverError
 from edge.timebase import ScanClock
-from edge.wire import BatchEncoder, alive_key, data_key, health_key
+from edge.wire import (
+    BatchEncoder,
+    Event,
+    alive_key,
+    data_key,
+    encode_event,
+    events_key,
+    health_key,
+)
 from edge.zenoh_session import client_config
 from ptp.quality import UNSYNCED, ClockQuality
 
@@ -41,24 +49,20 @@ class StreamCounters:
 
 
 class Events:
-    """Publishes system messages on ``.../events`` (and logs them)."""
+    """Publishes system messages (fleetdaq_msgs/msg/Event) on ``.../events`` and logs them."""
 
     def __init__(self, session: Any, key: str, node: str) -> None:
-        self._pub = session.declare_publisher(key)
+        self._pub = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
         self._node = node
 
-    def emit(self, level: str, source: str, message: str) -> None:
-        getattr(log, level if level in {"info", "warning", "error"} else "info")(
-            "%s: %s", source, message
-        )
-        event = {
-            "time_ns": time.time_ns(),
-            "node": self._node,
-            "level": level,
-            "source": source,
-            "message": message,
-        }
-        self._pub.put(json.dumps(event).encode())
+    def emit(self, level: int, source: str, tag: str, message: str) -> None:
+        log.log(level, "%s [%s]: %s", source, tag, message)
+        event = Event(time.time_ns(), self._node, level, source, tag, message)
+        self._pub.put(encode_event(event))
 
     def close(self) -> None:
         self._pub.undeclare()
@@ -111,8 +115,9 @@ class StreamLoop:
         while not self._pub.matching_status.matching:
             if time.monotonic() >= deadline:
                 self.events.emit(
-                    "warning",
+                    logging.WARNING,
                     self.name,
+                    "no_hub",
                     f"no hub subscribed after {timeout:g} s; "
                     "acquiring anyway, batches are lost until one subscribes",
                 )
@@ -134,7 +139,10 @@ class StreamLoop:
             except (DriverError, OSError) as err:
                 self.counters.read_errors += 1
                 self.events.emit(
-                    "error", self.name, f"driver failed, retrying in {backoff}s: {err}"
+                    logging.ERROR,
+                    self.name,
+                    "driver_error",
+                    f"driver failed, retrying in {backoff:g} s: {err}",
                 )
                 with_close(self.driver)
                 if self._stop.wait(backoff):
@@ -210,7 +218,7 @@ class EdgeAgent:
     def start(self) -> None:
         sid, node = self.site.site, self.node
         self._session = zenoh.open(client_config(self.endpoints))
-        self.events = Events(self._session, f"fleetdaq/{sid}/{node}/events", node)
+        self.events = Events(self._session, events_key(sid, node), node)
         self._token = self._session.liveliness().declare_token(alive_key(sid, node))
         self._health_pub = self._session.declare_publisher(health_key(sid, node))
         for name, cfg in self.site.nodes[node].streams.items():
@@ -220,8 +228,9 @@ class EdgeAgent:
             loop.start()
         self._health_thread.start()
         self.events.emit(
-            "info",
+            logging.INFO,
             "agent",
+            "started",
             f"started fleetdaq {__version__} with "
             f"{len(self.loops)} stream(s), connecting to {self.endpoints}",
         )
@@ -259,7 +268,7 @@ class EdgeAgent:
         for loop in self.loops:
             loop.join(5.0)
         self._health_thread.join(2.0)
-        self.events.emit("info", "agent", "stopped")
+        self.events.emit(logging.INFO, "agent", "stopped", "stopped")
         self.events.close()
         self._health_pub.undeclare()
         self._token.undeclare()

@@ -46,6 +46,14 @@ def health_key(site: str, node: str) -> str:
     return f"{ROOT}/{site}/{node}/health"
 
 
+def events_key(site: str, node: str) -> str:
+    return f"{ROOT}/{site}/{node}/events"
+
+
+def events_selector(site: str) -> str:
+    return f"{ROOT}/{site}/*/events"
+
+
 def hub_key(site: str, what: str) -> str:
     return f"{ROOT}/{site}/hub/{what}"
 
@@ -95,6 +103,23 @@ SAMPLE_BATCH_SCHEMA: Final = (
     f"{SAMPLE_BATCH_MSG}{SEPARATOR}\nMSG: fleetdaq_msgs/ClockQuality\n{CLOCK_QUALITY_MSG}"
 )
 """SampleBatch with its dependency, in the ros2msg concatenated form MCAP readers expect."""
+
+
+EVENT_TYPE: Final = "fleetdaq_msgs/msg/Event"
+EVENT_MSG: Final = """\
+# A system message (like MODAQ 2's /system_messenger): recorded, logged, alerted on.
+uint8 DEBUG=10
+uint8 INFO=20
+uint8 WARNING=30
+uint8 ERROR=40
+uint8 CRITICAL=50
+int64 time_ns     # UTC ns when it happened
+string node       # who raised it ("hub" for the hub)
+uint8 level       # one of the constants above (Python logging levels)
+string source     # the part that raised it: a stream name, "agent", "recorder", ...
+string tag        # stable identifier of the kind of event, for alert snoozing
+string message    # for people
+"""
 
 
 class SampleStatus:
@@ -353,3 +378,45 @@ def decode_batch(payload: bytes | bytearray | memoryview) -> SampleBatch:
     data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
     status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
     return SampleBatch(h, data, status)
+
+
+# --- Events ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    time_ns: int
+    node: str
+    level: int
+    source: str
+    tag: str
+    message: str
+
+    @property
+    def level_name(self) -> str:
+        return {10: "debug", 20: "info", 30: "warning", 40: "error", 50: "critical"}.get(
+            self.level, str(self.level)
+        )
+
+
+def encode_event(e: Event) -> bytes:
+    out = bytearray(ENCAPSULATION)
+    out += struct.pack("<q", e.time_ns)
+    _put_string(out, e.node)
+    out += struct.pack("<B", e.level)
+    _put_string(out, e.source)
+    _put_string(out, e.tag)
+    _put_string(out, e.message)
+    return bytes(out)
+
+
+def decode_event(payload: bytes | bytearray | memoryview) -> Event:
+    """Raises WireError for anything that is not a well-formed Event."""
+    r = _Reader(payload)
+    (t,) = r.unpack("<q", 8, 8)
+    node = r.string()
+    (level,) = r.unpack("<B", 1, 1)
+    source, tag, message = r.string(), r.string(), r.string()
+    if r.pos != len(r.buf):
+        raise WireError(f"{len(r.buf) - r.pos} trailing bytes")
+    return Event(int(t), node, int(level), source, tag, message)

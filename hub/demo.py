@@ -11,15 +11,28 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-from rich.console import Console
+from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
 from edge.config import SiteConfig
 from hub.errors import RouterError
+from hub.events import format_event
 from hub.service import Hub
 
 log = logging.getLogger("fleetdaq.demo")
+
+
+def status_view(h: Hub, elapsed: float) -> Group:
+    """The stream table and the last events under it."""
+    events = Table(title="last events", show_header=False, box=None, title_justify="left")
+    events.add_column("event", overflow="fold")
+    for e in h.recorder.events.tail(6):
+        style = (
+            "red" if e.level >= logging.ERROR else "yellow" if e.level >= logging.WARNING else ""
+        )
+        events.add_row(format_event(e), style=style)
+    return Group(status_table(h, elapsed), events)
 
 
 def status_table(h: Hub, elapsed: float) -> Table:
@@ -142,7 +155,7 @@ def run_demo(
     died: list[str] = []
     try:
         with Live(
-            status_table(h, 0),
+            status_view(h, 0),
             console=console,
             refresh_per_second=2,
             transient=not console.is_terminal,
@@ -150,10 +163,10 @@ def run_demo(
             last_line = 0.0
             while not stop.wait(0.5):
                 elapsed = time.monotonic() - t0
-                live.update(status_table(h, elapsed))
+                live.update(status_view(h, elapsed))
                 if not console.is_terminal and elapsed - last_line >= 5:
                     last_line = elapsed
-                    console.print(status_table(h, elapsed))
+                    console.print(status_view(h, elapsed))
                 died = [n for n, (p, _) in procs.items() if p.poll() is not None]
                 if died or (duration is not None and elapsed >= duration):
                     break
@@ -163,7 +176,7 @@ def run_demo(
     summary = h.recorder.summary()
     summary["duration_s"] = round(time.monotonic() - t0, 3)
     summary["edge_failures"] = failed
-    console.print(status_table(h, summary["duration_s"]))
+    console.print(status_view(h, summary["duration_s"]))
     console.print(
         f"recorded into {h.recorder.session.dir} ({len(summary['files'])} file(s)); "
         f"edge logs in {h.recorder.session.dir / 'logs'}"

@@ -20,12 +20,23 @@ from typing import Any
 
 from edge.config import SiteConfig, effective_yaml
 from edge.errors import WireError
-from edge.wire import data_selector, read_header, split_data_key
-from hub.session import RecordingSession, StreamSelector, topic_of
+from edge.wire import (
+    EVENT_TYPE,
+    Event,
+    data_selector,
+    decode_event,
+    encode_event,
+    events_selector,
+    read_header,
+    split_data_key,
+)
+from hub.events import EventLog
+from hub.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
 
 log = logging.getLogger("fleetdaq.recorder")
 
 _STOP = object()
+_DATA, _EVENT = 0, 1
 
 
 @dataclass(slots=True)
@@ -103,18 +114,32 @@ class Recorder:
         self.session = RecordingSession(
             data_dir, site.site, list(site.nodes), self.cfg, effective_yaml(site), time.time_ns()
         )
+        self.events = EventLog(data_dir / "events.log")
         self._thread = threading.Thread(target=self._writer, name="recorder", daemon=True)
-        self._sub: Any = None
+        self._subs: list[Any] = []
         self._closed = False
 
     def start(self) -> None:
         self._thread.start()
         put = self._queue.put
 
-        def on_sample(sample: Any) -> None:
-            put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        def on_data(sample: Any) -> None:
+            put((_DATA, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
-        self._sub = self._zsession.declare_subscriber(data_selector(self.site.site), on_sample)
+        def on_event(sample: Any) -> None:
+            put((_EVENT, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+        site = self.site.site
+        self._subs = [
+            self._zsession.declare_subscriber(data_selector(site), on_data),
+            self._zsession.declare_subscriber(events_selector(site), on_event),
+        ]
+
+    def emit(self, level: int, source: str, tag: str, message: str) -> None:
+        """Raise a hub event: recorded in the session, logged, shown, alerted on."""
+        now = time.time_ns()
+        e = Event(now, "hub", level, source, tag, message)
+        self._queue.put((_EVENT, "", encode_event(e), now))
 
     def _writer(self) -> None:
         get = self._queue.get
@@ -128,9 +153,27 @@ class Recorder:
                 continue
             if item is _STOP:
                 return
-            key, payload, recv_ns = item
+            kind, key, payload, recv_ns = item
             with self.lock:
-                self._record(key, payload, recv_ns)
+                if kind == _DATA:
+                    self._record(key, payload, recv_ns)
+                else:
+                    self._record_event(key, payload, recv_ns)
+
+    def _malformed(self, key: str, err: WireError) -> None:
+        self.malformed += 1
+        self.malformed_by_key[key] = self.malformed_by_key.get(key, 0) + 1
+        if self.malformed_by_key[key] == 1:
+            log.warning("malformed payload on %s: %s", key, err)
+
+    def _record_event(self, key: str, payload: bytes, recv_ns: int) -> None:
+        try:
+            e = decode_event(payload)
+        except WireError as err:
+            self._malformed(key or "hub/events", err)
+            return
+        self.session.write(EVENTS_TOPIC, payload, e.time_ns, recv_ns, EVENT_TYPE)
+        self.events.add(e)
 
     def _record(self, key: str, payload: bytes, recv_ns: int) -> None:
         try:
@@ -139,10 +182,7 @@ class Recorder:
             if (h.node, h.stream) != (node, stream):
                 raise WireError(f"payload says {h.node}/{h.stream}, key says {node}/{stream}")
         except WireError as err:
-            self.malformed += 1
-            self.malformed_by_key[key] = self.malformed_by_key.get(key, 0) + 1
-            if self.malformed_by_key[key] == 1:
-                log.warning("malformed payload on %s: %s", key, err)
+            self._malformed(key, err)
             return
         stats = self.streams.get((node, stream))
         if stats is None:
@@ -151,17 +191,24 @@ class Recorder:
             stats = StreamStats(node, stream, self.select(node, stream), rate)
             self.streams[(node, stream)] = stats
             if h.sequence != 0:
-                log.warning(
-                    "%s/%s first seen at sequence %d: batches before it were not "
-                    "received by this hub",
-                    node,
-                    stream,
-                    h.sequence,
+                self._emit_now(
+                    logging.WARNING,
+                    "recorder",
+                    "late_start",
+                    f"{node}/{stream} first seen at sequence {h.sequence}: batches "
+                    "before it were not received by this hub",
                 )
         if not stats.add(h.sequence, h.scan_count, h.samples, recv_ns):
             return
         if stats.recorded:
             self.session.write(topic_of(node, stream), payload, h.first_sample_time_ns, recv_ns)
+
+    def _emit_now(self, level: int, source: str, tag: str, message: str) -> None:
+        """A hub event raised on the writer thread itself (lock held): record it directly."""
+        now = time.time_ns()
+        e = Event(now, "hub", level, source, tag, message)
+        self.session.write(EVENTS_TOPIC, encode_event(e), now, now, EVENT_TYPE)
+        self.events.add(e)
 
     def split(self) -> None:
         with self.lock:
@@ -172,13 +219,14 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
-        if self._sub is not None:
-            self._sub.undeclare()
-            self._sub = None
+        for sub in self._subs:
+            sub.undeclare()
+        self._subs = []
         if self._thread.is_alive():
             self._queue.put(_STOP)
             self._thread.join()
         self.session.close()
+        self.events.close()
 
     def summary(self) -> dict[str, Any]:
         with self.lock:
@@ -187,4 +235,8 @@ class Recorder:
                 "files": [str(p) for p in self.session.files()],
                 "streams": {f"{k[0]}/{k[1]}": s.summary() for k, s in sorted(self.streams.items())},
                 "malformed": self.malformed,
+                "events": {
+                    logging.getLevelName(level).lower(): n
+                    for level, n in sorted(self.events.counts.items())
+                },
             }

@@ -95,6 +95,13 @@ class Hub:
         self._heartbeat_pub = self.session.declare_publisher(hub_key(self.site.site, "heartbeat"))
         self._heartbeat = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._heartbeat.start()
+        self.recorder.emit(
+            logging.INFO,
+            "hub",
+            "started",
+            f"hub started: site {self.site.site}, listening on {', '.join(self.listen)}, "
+            f"session {self.recorder.session.name}",
+        )
         log.info(
             "hub for site %r listening on %s, recording into %s",
             self.site.site,
@@ -122,6 +129,7 @@ class Hub:
         self._heartbeat.join(2.0)
         self._heartbeat_pub.undeclare()
         self.nodes.close()
+        self.recorder.emit(logging.INFO, "hub", "stopped", "hub stopping: closing files")
         self.recorder.close()
         self.session.close()
         self.session = None

@@ -23,7 +23,7 @@ from mcap.writer import CompressionType, Writer
 
 from edge import __version__
 from edge.config import RecorderConfig
-from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+from edge.wire import EVENT_MSG, EVENT_TYPE, SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
 
 log = logging.getLogger("fleetdaq.recorder")
 
@@ -33,6 +33,9 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 ACTIVE_SUFFIX = ".active"
+SCHEMAS = {SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA, EVENT_TYPE: EVENT_MSG}
+"""Every message type the hub records, with its ros2msg definition (embedded per file)."""
+EVENTS_TOPIC = "/events"
 
 
 def session_name(now_ns: int) -> str:
@@ -88,20 +91,24 @@ class _OpenFile:
             self.fh, chunk_size=cfg.chunk_size, compression=_COMPRESSION[cfg.compression]
         )
         self.writer.start(profile="ros2", library=f"fleetdaq/{__version__}")
-        self.schema_id = self.writer.register_schema(
-            name=SAMPLE_BATCH_TYPE, encoding="ros2msg", data=SAMPLE_BATCH_SCHEMA.encode()
-        )
+        self.schemas: dict[str, int] = {}
         self.channels: dict[str, int] = {}
         self.opened_ns = opened_ns
         self.stats = _FileStats(path)
 
-    def channel(self, topic: str) -> int:
+    def channel(self, topic: str, msgtype: str) -> int:
         cid = self.channels.get(topic)
         if cid is None:
+            sid = self.schemas.get(msgtype)
+            if sid is None:
+                sid = self.writer.register_schema(
+                    name=msgtype, encoding="ros2msg", data=SCHEMAS[msgtype].encode()
+                )
+                self.schemas[msgtype] = sid
             cid = self.writer.register_channel(
                 topic=topic,
                 message_encoding="cdr",
-                schema_id=self.schema_id,
+                schema_id=sid,
                 metadata={"offered_qos_profiles": ""},
             )
             self.channels[topic] = cid
@@ -196,15 +203,23 @@ class RecordingSession:
             f.fh.tell() + self.cfg.chunk_size >= self.cfg.max_file_bytes
         )
 
-    def write(self, topic: str, payload: bytes, publish_ns: int, log_ns: int) -> None:
+    def write(
+        self,
+        topic: str,
+        payload: bytes,
+        publish_ns: int,
+        log_ns: int,
+        msgtype: str = SAMPLE_BATCH_TYPE,
+    ) -> None:
+        """Append one message (CDR bytes of `msgtype`, written untouched)."""
         if self._file is not None and self.due_split(log_ns):
             self.split()
         f = self._file or self._open(log_ns)
         f.writer.add_message(
-            f.channel(topic), log_time=log_ns, data=payload, publish_time=publish_ns
+            f.channel(topic, msgtype), log_time=log_ns, data=payload, publish_time=publish_ns
         )
         f.stats.add(topic, log_ns)
-        self.topic_types[topic] = SAMPLE_BATCH_TYPE
+        self.topic_types[topic] = msgtype
 
     def split(self) -> None:
         """Close the current file (it is renamed to ``.mcap``); the next write opens a new one."""

@@ -63,7 +63,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, 
         assert codes == {"wec": 0, "am-cell": 0, "hub": 0}, {
             p.log_path.stem: p.output()[-2000:] for p in procs
         }
-        (session,) = list(data.iterdir())
+        (session,) = [p for p in data.iterdir() if p.is_dir()]
         yield session, procs
     finally:
         for p in procs:
@@ -92,15 +92,17 @@ def test_every_file_is_closed_and_decodes(recording: tuple[Path, list[Proc]]):
 
 def test_sequences_are_contiguous_across_files(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    assert set(msgs) == set(RATES)
-    for topic, items in msgs.items():
+    assert set(msgs) == {*RATES, "/events"}
+    for topic in RATES:
+        items = msgs[topic]
         seqs = [m.sequence for _, m in items]  # type: ignore[attr-defined]
         assert seqs == list(range(len(seqs))), f"{topic}: not contiguous from 0"
 
 
 def test_sample_counts_match_rate_times_time(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    for topic, items in msgs.items():
+    for topic, rate in RATES.items():
+        items = msgs[topic]
         first, last = items[0][1], items[-1][1]
         scans = sum(m.scan_count for _, m in items)  # type: ignore[attr-defined]
         span_s = (
@@ -108,7 +110,7 @@ def test_sample_counts_match_rate_times_time(recording: tuple[Path, list[Proc]])
             + last.scan_count * last.sample_period_ns  # type: ignore[attr-defined]
             - first.first_sample_time_ns
         ) / 1e9  # type: ignore[attr-defined]
-        expected = RATES[topic] * span_s
+        expected = rate * span_s
         assert abs(scans - expected) <= 0.02 * expected + 1, (topic, scans, expected)
         assert span_s > 0.7 * RUN_S, (topic, span_s)
         values = np.concatenate([m.data for _, m in items])  # type: ignore[attr-defined]
@@ -118,10 +120,23 @@ def test_sample_counts_match_rate_times_time(recording: tuple[Path, list[Proc]])
 
 def test_first_sample_times_increase_and_sit_near_log_time(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    for topic, items in msgs.items():
+    for topic in RATES:
+        items = msgs[topic]
         times = np.array([m.first_sample_time_ns for _, m in items])  # type: ignore[attr-defined]
         assert (np.diff(times) > 0).all(), topic
         lag_ms = np.array([log - m.first_sample_time_ns for log, m in items]) / 1e6  # type: ignore[attr-defined]
         # Every batch of this site is at most 10 ms long (100 scans at 10 kHz, 1 scan at 4 Hz).
         assert lag_ms.min() >= 0, (topic, lag_ms.min())
         assert lag_ms.max() <= 50, (topic, np.percentile(lag_ms, [50, 99, 100]))
+
+
+def test_every_edges_start_and_stop_are_events_in_the_recording(
+    recording: tuple[Path, list[Proc]],
+):
+    msgs = _messages(recording[0])
+    events = [(m.node, m.tag) for _, m in msgs.get("/events", [])]  # type: ignore[attr-defined]
+    for node in ("wec", "am-cell"):
+        assert (node, "started") in events, events
+        assert (node, "stopped") in events, events
+    assert ("hub", "started") in events
+    assert (recording[0].parent / "events.log").read_text().count("started") >= 3
