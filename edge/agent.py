@@ -20,8 +20,9 @@ import numpy as np
 import zenoh
 
 from edge import __version__
+from edge.clock import ClockMonitor, NoClockMonitor, make_clock_monitor
 from edge.config import SiteConfig, StreamConfig
-from edge.drivers import Driver, create_driver
+from edge.drivers import Driver, DriverHealth, create_driver
 from edge.errors import DriverError
 from edge.timebase import ScanClock
 from edge.wire import (
@@ -34,7 +35,6 @@ from edge.wire import (
     health_key,
 )
 from edge.zenoh_session import client_config
-from ptp.quality import UNSYNCED, ClockQuality
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -92,7 +92,7 @@ class StreamLoop:
         self.offset = np.array([ch.offset for ch in cfg.channels])
         self.clock = ScanClock(cfg.rate_hz)
         self.counters = StreamCounters()
-        self.quality: ClockQuality = UNSYNCED
+        self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._pub = session.declare_publisher(
             data_key(site, node, name),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -160,13 +160,15 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
-            self.clock.observe(index + scans - 1, block.host_ns)
+            for ev in block.events:
+                self.events.emit(ev.level, self.name, ev.tag, ev.message)
+            self.clock.observe(index + scans - 1, block.host_ns, block.device_ns)
             payload = self.encoder.encode(
                 c.next_sequence,
                 self.clock.time_of(index),
                 self.clock.period_ns,
                 values,
-                self.quality,
+                self.clock_monitor.quality,
                 block.status,
             )
             self._pub.put(payload)
@@ -202,6 +204,7 @@ class EdgeAgent:
         self.endpoints = endpoints or site.endpoints_for(node)
         self._session: Any = None
         self.loops: list[StreamLoop] = []
+        self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._stop = threading.Event()
         self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
         self.started_ns = 0
@@ -221,8 +224,15 @@ class EdgeAgent:
         self.events = Events(self._session, events_key(sid, node), node)
         self._token = self._session.liveliness().declare_token(alive_key(sid, node))
         self._health_pub = self._session.declare_publisher(health_key(sid, node))
-        for name, cfg in self.site.nodes[node].streams.items():
-            self.loops.append(StreamLoop(sid, node, name, cfg, self._session, self.events))
+        node_cfg = self.site.nodes[node]
+        self.clock_monitor = make_clock_monitor(
+            node_cfg, lambda level, tag, msg: self.events.emit(level, "clock", tag, msg)
+        )
+        self.clock_monitor.start()
+        for name, cfg in node_cfg.streams.items():
+            loop = StreamLoop(sid, node, name, cfg, self._session, self.events)
+            loop.clock_monitor = self.clock_monitor
+            self.loops.append(loop)
         self.started_ns = time.time_ns()
         for loop in self.loops:
             loop.start()
@@ -249,9 +259,11 @@ class EdgeAgent:
                     "read_errors": loop.counters.read_errors,
                     "next_sequence": loop.counters.next_sequence,
                     "period_ns": loop.clock.period_ns,
+                    "device": loop.driver.health() if isinstance(loop.driver, DriverHealth) else {},
                 }
                 for loop in self.loops
             },
+            "clock": self.clock_monitor.status(),
         }
 
     def _health(self) -> None:
@@ -268,6 +280,7 @@ class EdgeAgent:
         for loop in self.loops:
             loop.join(5.0)
         self._health_thread.join(2.0)
+        self.clock_monitor.close()
         self.events.emit(logging.INFO, "agent", "stopped", "stopped")
         self.events.close()
         self._health_pub.undeclare()

@@ -26,8 +26,11 @@ class ScanClock:
         self._t0 = 0.0  # fitted host time of scan `_ref[0]`, relative to `_ref[1]`
         self._period = self.nominal_period_ns
 
-    def observe(self, last_index: int, host_ns: int) -> None:
-        """Record that scan `last_index` (the last of a block) was acquired by `host_ns`."""
+    def observe(self, last_index: int, host_ns: int, device_ns: int | None = None) -> None:
+        """Record that scan `last_index` (the last of a block) was acquired by `host_ns`.
+
+        `device_ns` is the device clock's time of that scan when the device has one.
+        """
         if self._ref is None:
             self._ref = (last_index, host_ns)
         self._pairs.append((last_index, host_ns))

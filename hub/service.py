@@ -10,6 +10,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -33,6 +34,10 @@ class NodeWatch:
         self.alive: set[str] = set()
         self.health: dict[str, dict[str, Any]] = {}
         self.lock = threading.Lock()
+        self.health_listeners: list[Callable[[str, dict[str, Any]], None]] = []
+        """Called with (node, health) for every health message, on a Zenoh thread."""
+        self.alive_listeners: list[Callable[[str, bool], None]] = []
+        """Called with (node, alive) when a node's liveliness token appears or goes."""
         self._subs = [
             session.liveliness().declare_subscriber(
                 alive_selector(site), self._on_alive, history=True
@@ -42,11 +47,14 @@ class NodeWatch:
 
     def _on_alive(self, sample: Any) -> None:
         node = str(sample.key_expr).split("/")[2]
+        alive = sample.kind == zenoh.SampleKind.PUT
         with self.lock:
-            if sample.kind == zenoh.SampleKind.PUT:
+            if alive:
                 self.alive.add(node)
             else:
                 self.alive.discard(node)
+        for listener in self.alive_listeners:
+            listener(node, alive)
 
     def _on_health(self, sample: Any) -> None:
         node = str(sample.key_expr).split("/")[2]
@@ -54,8 +62,12 @@ class NodeWatch:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
+        if not isinstance(msg, dict):
+            return
         with self.lock:
             self.health[node] = msg
+        for listener in self.health_listeners:
+            listener(node, msg)
 
     def close(self) -> None:
         for sub in self._subs:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -17,6 +17,16 @@ from edge.errors import DriverError, DriverUnavailable
 
 if TYPE_CHECKING:
     from edge.config import StreamConfig
+
+
+@dataclass(frozen=True, slots=True)
+class DriverEvent:
+    """Something a driver noticed (skipped scans, a fault, a reconnect): the agent raises it."""
+
+    level: int
+    """Python logging level."""
+    tag: str
+    message: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,6 +39,10 @@ class Block:
     """CLOCK_REALTIME right after the read returned (every scan in the block is older)."""
     status: npt.NDArray[np.uint8] | None = None
     """(scans, channels) SampleStatus codes, None when all valid."""
+    device_ns: int | None = None
+    """Device-clock time of the block's last scan (ns, unwrapped), when the device has a
+    clock (e.g. the T8's CORE_TIMER); None otherwise."""
+    events: tuple[DriverEvent, ...] = ()
 
 
 class Driver(Protocol):
@@ -43,6 +57,13 @@ class Driver(Protocol):
     def close(self) -> None:
         """Idempotent."""
         ...
+
+
+@runtime_checkable
+class DriverHealth(Protocol):
+    """Optional: a driver with this reports device health (backlogs, fault counts, ...)."""
+
+    def health(self) -> dict[str, Any]: ...
 
 
 REGISTRY: dict[str, str] = {
