@@ -12,6 +12,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -49,22 +50,57 @@ class StreamCounters:
 
 
 class Events:
-    """Publishes system messages (fleetdaq_msgs/msg/Event) on ``.../events`` and logs them."""
+    """Publishes system messages (fleetdaq_msgs/msg/Event) on ``.../events`` and logs them.
 
-    def __init__(self, session: Any, key: str, node: str) -> None:
+    Until the hub's subscription reaches this publisher a put would go nowhere, so events wait
+    in a bounded queue and go out in order once it matches; any dropped from a full queue are
+    counted and reported in an event of their own.
+    """
+
+    def __init__(self, session: Any, key: str, node: str, backlog: int = 1000) -> None:
         self._pub = session.declare_publisher(
             key,
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
         )
         self._node = node
+        self._pending: deque[bytes] = deque()
+        self._backlog = backlog
+        self.dropped = 0
+        self._lock = threading.Lock()
 
     def emit(self, level: int, source: str, tag: str, message: str) -> None:
         log.log(level, "%s [%s]: %s", source, tag, message)
         event = Event(time.time_ns(), self._node, level, source, tag, message)
-        self._pub.put(encode_event(event))
+        with self._lock:
+            if len(self._pending) >= self._backlog:
+                self._pending.popleft()
+                self.dropped += 1
+            self._pending.append(encode_event(event))
+        self.flush()
+
+    def flush(self) -> None:
+        """Publish what is waiting, if the hub listens."""
+        if not self._pub.matching_status.matching:
+            return
+        with self._lock:
+            pending, self._pending = self._pending, deque()
+            dropped, self.dropped = self.dropped, 0
+        if dropped:
+            note = Event(
+                time.time_ns(),
+                self._node,
+                logging.WARNING,
+                "agent",
+                "events_dropped",
+                f"{dropped} event(s) dropped while no hub was listening",
+            )
+            pending.appendleft(encode_event(note))
+        for payload in pending:
+            self._pub.put(payload)
 
     def close(self) -> None:
+        self.flush()
         self._pub.undeclare()
 
 
@@ -269,6 +305,7 @@ class EdgeAgent:
     def _health(self) -> None:
         while not self._stop.wait(1.0):
             self._health_pub.put(json.dumps(self.health()).encode())
+            self.events.flush()
 
     def close(self) -> None:
         """Stop every stream and close the session. Idempotent."""
