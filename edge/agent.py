@@ -14,6 +14,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from types import TracebackType
 from typing import Any
 
@@ -22,16 +23,20 @@ import zenoh
 
 from edge import __version__
 from edge.clock import ClockMonitor, NoClockMonitor, make_clock_monitor
-from edge.config import SiteConfig, StreamConfig
+from edge.config import SiteConfig, SpoolConfig, StreamConfig
 from edge.drivers import Driver, DriverHealth, create_driver
 from edge.errors import DriverError
+from edge.spool import StreamSpool
 from edge.timebase import ScanClock
 from edge.wire import (
     BatchEncoder,
     Event,
+    ack_selector,
     alive_key,
     data_key,
+    decode_u64,
     encode_event,
+    encode_u64,
     events_key,
     health_key,
 )
@@ -47,6 +52,7 @@ class StreamCounters:
     invalid_samples: int = 0
     read_errors: int = 0
     next_sequence: int = 0
+    replayed: int = 0
 
 
 class Events:
@@ -105,7 +111,12 @@ class Events:
 
 
 class StreamLoop:
-    """Acquires one stream in its own thread until stopped."""
+    """Acquires one stream in its own thread until stopped, and replays from its spool.
+
+    Every batch is appended to the spool before it is published; the hub's acks free the
+    spool. A second thread replays unacked batches (rate-limited, oldest first) whenever the
+    oldest unacked batch is older than `replay_after_s` and the hub is listening.
+    """
 
     def __init__(
         self,
@@ -115,11 +126,15 @@ class StreamLoop:
         cfg: StreamConfig,
         session: Any,
         events: Events,
+        spool: StreamSpool,
+        spool_cfg: SpoolConfig,
         driver: Driver | None = None,
     ) -> None:
         self.name = name
         self.cfg = cfg
         self.events = events
+        self.spool = spool
+        self.spool_cfg = spool_cfg
         self.driver = driver or create_driver(cfg)
         names = tuple(ch.name for ch in cfg.channels)
         units = tuple(ch.unit for ch in cfg.channels)
@@ -127,7 +142,7 @@ class StreamLoop:
         self.scale = np.array([ch.scale for ch in cfg.channels])
         self.offset = np.array([ch.offset for ch in cfg.channels])
         self.clock = ScanClock(cfg.rate_hz)
-        self.counters = StreamCounters()
+        self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._pub = session.declare_publisher(
             data_key(site, node, name),
@@ -137,15 +152,33 @@ class StreamLoop:
         self.subscriber_timeout_s = 10.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
+        self._replayer = threading.Thread(target=self._replay, name=f"replay-{name}", daemon=True)
+        self._report_recovery()
+
+    def _report_recovery(self) -> None:
+        rec = self.spool.recovery
+        if rec.clean or rec.last_seq is None:
+            return
+        when = rec.last_time_ns or 0
+        self.events.emit(
+            logging.WARNING,
+            self.name,
+            "unclean_stop",
+            f"the last run stopped without closing its spool (crash, kill or power loss) after "
+            f"sequence {rec.last_seq} (acquired {when / 1e9:.3f} s UTC); scans between then and "
+            f"this start were never acquired; {rec.torn_bytes} bytes of a torn record cut; "
+            f"sequence numbers continue at {self.counters.next_sequence}",
+        )
 
     def start(self) -> None:
         self._thread.start()
+        self._replayer.start()
 
     def wait_for_subscriber(self, timeout: float) -> bool:
         """Wait until the hub's subscription reaches this publisher (bounded).
 
-        A put before that goes nowhere. Waiting here, before the device starts, keeps the first
-        batches of a run; after `timeout` the stream starts anyway and says so.
+        A put before that goes nowhere (the spool keeps it for replay, but a run that starts
+        with the hub up should not need one). After `timeout` the stream starts anyway.
         """
         deadline = time.monotonic() + timeout
         while not self._pub.matching_status.matching:
@@ -154,8 +187,7 @@ class StreamLoop:
                     logging.WARNING,
                     self.name,
                     "no_hub",
-                    f"no hub subscribed after {timeout:g} s; "
-                    "acquiring anyway, batches are lost until one subscribes",
+                    f"no hub subscribed after {timeout:g} s; acquiring anyway into the spool",
                 )
                 return False
             if self._stop.wait(0.02):
@@ -188,6 +220,8 @@ class StreamLoop:
     def _acquire(self) -> None:
         index = 0  # scans acquired since this open; sequence numbers continue across reopen
         c = self.counters
+        fsync_ns = int(self.spool_cfg.fsync_interval_s * 1e9)
+        last_sync = time.monotonic_ns()
         while not self._stop.is_set():
             block = self.driver.read()
             scans = block.raw.shape[0]
@@ -199,19 +233,55 @@ class StreamLoop:
             for ev in block.events:
                 self.events.emit(ev.level, self.name, ev.tag, ev.message)
             self.clock.observe(index + scans - 1, block.host_ns, block.device_ns)
+            t0 = self.clock.time_of(index)
+            seq = c.next_sequence
             payload = self.encoder.encode(
-                c.next_sequence,
-                self.clock.time_of(index),
-                self.clock.period_ns,
-                values,
-                self.clock_monitor.quality,
-                block.status,
+                seq, t0, self.clock.period_ns, values, self.clock_monitor.quality, block.status
             )
-            self._pub.put(payload)
+            for d in self.spool.append(seq, t0, payload):
+                self.events.emit(
+                    logging.ERROR,
+                    self.name,
+                    "spool_full",
+                    f"{d.reason}: dropped {d.batches} unacked batch(es), sequences "
+                    f"{d.first_seq}..{d.last_seq} — the hub never received them",
+                )
+            self._pub.put(payload, attachment=encode_u64(self.spool.floor))
             index += scans
-            c.next_sequence += 1
+            c.next_sequence = seq + 1
             c.batches += 1
             c.scans += scans
+            now = time.monotonic_ns()
+            if now - last_sync >= fsync_ns:
+                self.spool.sync()
+                last_sync = now
+
+    def _replay(self) -> None:
+        """Resend unacked batches from the spool, oldest first, rate-limited."""
+        after_ns = int(self.spool_cfg.replay_after_s * 1e9)
+        rate = self.spool_cfg.replay_mb_per_s * 1e6
+        while not self._stop.wait(0.25):
+            oldest = self.spool.oldest_unacked_time_ns()
+            if oldest is None or time.time_ns() - oldest < after_ns:
+                continue
+            if not self._pub.matching_status.matching:
+                continue  # the hub is away: nothing to send to
+            first, until = self.spool.acked + 1, self.counters.next_sequence - 1
+            sent, batches, t_start = 0, 0, time.monotonic()
+            for _seq, payload in self.spool.read_from(first, until):
+                if self._stop.is_set() or not self._pub.matching_status.matching:
+                    break
+                self._pub.put(payload, attachment=encode_u64(self.spool.floor))
+                sent += len(payload)
+                batches += 1
+                self.counters.replayed += 1
+                ahead = sent / rate - (time.monotonic() - t_start)
+                if ahead > 0 and self._stop.wait(ahead):
+                    break
+            if batches:
+                log.info("%s: replayed %d batch(es) from sequence %d", self.name, batches, first)
+            # Give the hub time to flush and ack before looking again.
+            self._stop.wait(self.spool_cfg.replay_after_s)
 
     def stop(self) -> None:
         self._stop.set()
@@ -219,7 +289,9 @@ class StreamLoop:
 
     def join(self, timeout: float) -> None:
         self._thread.join(timeout)
+        self._replayer.join(timeout)
         self._pub.undeclare()
+        self.spool.close()
 
 
 def with_close(driver: Driver) -> None:
@@ -232,12 +304,19 @@ def with_close(driver: Driver) -> None:
 class EdgeAgent:
     """Runs every stream of one node. A context manager: streams start on enter, stop on exit."""
 
-    def __init__(self, site: SiteConfig, node: str, endpoints: list[str] | None = None) -> None:
+    def __init__(
+        self,
+        site: SiteConfig,
+        node: str,
+        endpoints: list[str] | None = None,
+        spool_dir: Path | None = None,
+    ) -> None:
         if node not in site.nodes:
             raise DriverError(f"node {node!r} is not in the site config")
         self.site = site
         self.node = node
         self.endpoints = endpoints or site.endpoints_for(node)
+        self.spool_dir = (spool_dir or Path(site.nodes[node].spool.dir)) / node
         self._session: Any = None
         self.loops: list[StreamLoop] = []
         self.clock_monitor: ClockMonitor = NoClockMonitor()
@@ -266,9 +345,26 @@ class EdgeAgent:
         )
         self.clock_monitor.start()
         for name, cfg in node_cfg.streams.items():
-            loop = StreamLoop(sid, node, name, cfg, self._session, self.events)
+            spool = StreamSpool(
+                self.spool_dir / name,
+                node_cfg.spool.max_bytes,
+                node_cfg.spool.max_age_s,
+                node_cfg.spool.segment_bytes,
+            )
+            loop = StreamLoop(
+                sid, node, name, cfg, self._session, self.events, spool, node_cfg.spool
+            )
             loop.clock_monitor = self.clock_monitor
             self.loops.append(loop)
+        by_stream = {loop.name: loop for loop in self.loops}
+
+        def on_ack(sample: Any) -> None:
+            loop = by_stream.get(str(sample.key_expr).rsplit("/", 1)[-1])
+            seq = decode_u64(sample.payload.to_bytes())
+            if loop is not None and seq is not None:
+                loop.spool.ack(seq)
+
+        self._ack_sub = self._session.declare_subscriber(ack_selector(sid, node), on_ack)
         self.started_ns = time.time_ns()
         for loop in self.loops:
             loop.start()
@@ -294,6 +390,13 @@ class EdgeAgent:
                     "invalid_samples": loop.counters.invalid_samples,
                     "read_errors": loop.counters.read_errors,
                     "next_sequence": loop.counters.next_sequence,
+                    "replayed": loop.counters.replayed,
+                    "spool": {
+                        "bytes": loop.spool.bytes,
+                        "acked": loop.spool.acked,
+                        "floor": loop.spool.floor,
+                        "dropped_batches": loop.spool.dropped_batches,
+                    },
                     "period_ns": loop.clock.period_ns,
                     "device": loop.driver.health() if isinstance(loop.driver, DriverHealth) else {},
                 }
@@ -317,6 +420,7 @@ class EdgeAgent:
         for loop in self.loops:
             loop.join(5.0)
         self._health_thread.join(2.0)
+        self._ack_sub.undeclare()
         self.clock_monitor.close()
         self.events.emit(logging.INFO, "agent", "stopped", "stopped")
         self.events.close()

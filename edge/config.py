@@ -133,11 +133,30 @@ NodeName = Annotated[str, Field(pattern=NAME), AfterValidator(_not_reserved)]
 StreamName = Annotated[str, Field(pattern=NAME)]
 
 
+class SpoolConfig(_Strict):
+    """The edge's disk spool: batches stay on disk until the hub acks them."""
+
+    dir: str = "spool"
+    """Root of the spool; each node and stream gets its own folder below it."""
+    max_bytes: Annotated[Int, Field(ge=1_000_000)] = 2_000_000_000
+    """Per stream. Past it the oldest batches are dropped (counted, raised as an event)."""
+    max_age_s: Annotated[Float, Field(gt=0)] = 7 * 24 * 3600.0
+    """Per stream. Batches older than this are dropped even if not acked (counted, event)."""
+    segment_bytes: Annotated[Int, Field(ge=65536)] = 16 * 1024 * 1024
+    fsync_interval_s: Annotated[Float, Field(ge=0)] = 1.0
+    """How often the open segment is fsynced (a crash loses nothing; power loss up to this)."""
+    replay_after_s: Annotated[Float, Field(gt=0)] = 3.0
+    """Replay from the last ack when the oldest unacked batch is older than this."""
+    replay_mb_per_s: Annotated[Float, Field(gt=0)] = 40.0
+    """Replay rate limit, so live data keeps flowing while a backlog drains."""
+
+
 class NodeConfig(_Strict):
     """One edge machine."""
 
     connect: list[str] | None = None
     """Zenoh endpoints of the hub's router; default: the hub's listen endpoints."""
+    spool: SpoolConfig = SpoolConfig()
     streams: Annotated[dict[StreamName, StreamConfig], Field(min_length=1)]
 
 
@@ -146,6 +165,10 @@ class RecorderConfig(_Strict):
 
     file_duration_s: Annotated[Float, Field(gt=0)] | None = 60.0
     max_file_bytes: Annotated[Int, Field(ge=1_000_000)] | None = None
+    flush_interval_s: Annotated[Float, Field(gt=0, le=60)] = 1.0
+    """Close the MCAP chunk in progress and fsync at least this often; acks follow flushes."""
+    recover_on_start: bool = True
+    """At start, turn ``*.mcap.active`` files left by a crash into valid ``*.mcap`` files."""
     include: Annotated[list[str], Field(min_length=1)] = ["*"]
     """Patterns on ``node/stream`` (fnmatch); a stream is recorded when any include matches..."""
     exclude: list[str] = []

@@ -54,6 +54,30 @@ def events_selector(site: str) -> str:
     return f"{ROOT}/{site}/*/events"
 
 
+def ack_key(site: str, node: str, stream: str) -> str:
+    return f"{ROOT}/{site}/{node}/ack/{stream}"
+
+
+def ack_selector(site: str, node: str) -> str:
+    return f"{ROOT}/{site}/{node}/ack/*"
+
+
+_U64 = struct.Struct("<Q")
+
+
+def encode_u64(value: int) -> bytes:
+    """Acks (highest contiguous sequence durably recorded) and the `floor` attachment of a
+    data put (lowest sequence the edge still holds; below it everything was acked or dropped
+    and reported) are one little-endian uint64."""
+    return _U64.pack(value)
+
+
+def decode_u64(raw: bytes | None) -> int | None:
+    if raw is None or len(raw) != 8:
+        return None
+    return int(_U64.unpack(raw)[0])
+
+
 def hub_key(site: str, what: str) -> str:
     return f"{ROOT}/{site}/hub/{what}"
 

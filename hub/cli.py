@@ -74,8 +74,16 @@ def check(config: str) -> None:
 @click.option("--config", "config", required=True, type=click.Path())
 @click.option("--node", required=True, help="Which node of the site file this machine is.")
 @click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@click.option(
+    "--spool",
+    "spool_dir",
+    type=click.Path(file_okay=False),
+    help="Spool root, overriding the site file.",
+)
 @click.option("-v", "--verbose", is_flag=True)
-def edge(config: str, node: str, connect: tuple[str, ...], verbose: bool) -> None:
+def edge(
+    config: str, node: str, connect: tuple[str, ...], spool_dir: str | None, verbose: bool
+) -> None:
     """Run the edge agent for one node until SIGTERM or Ctrl-C."""
     site = _load(config)
     if node not in site.nodes:
@@ -86,7 +94,7 @@ def edge(config: str, node: str, connect: tuple[str, ...], verbose: bool) -> Non
 
     stop = _stop_on_signals()
     try:
-        with EdgeAgent(site, node, list(connect) or None):
+        with EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None):
             stop.wait()
     except DriverError as err:
         _fail(f"{config}: nodes.{node}: {err}", 1)

@@ -96,12 +96,23 @@ def status_table(h: Hub, elapsed: float) -> Table:
 
 
 def _spawn_edges(
-    site: SiteConfig, config: Path, endpoint: str | None, log_dir: Path
+    site: SiteConfig, config: Path, endpoint: str | None, log_dir: Path, spool_dir: Path
 ) -> dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]]:
     log_dir.mkdir(parents=True, exist_ok=True)
     procs: dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]] = {}
     for node in site.nodes:
-        cmd = [sys.executable, "-m", "hub.cli", "edge", "--config", str(config), "--node", node]
+        cmd = [
+            sys.executable,
+            "-m",
+            "hub.cli",
+            "edge",
+            "--config",
+            str(config),
+            "--node",
+            node,
+            "--spool",
+            str(spool_dir),
+        ]
         if endpoint:
             cmd += ["--connect", endpoint]
         out = open(log_dir / f"{node}.log", "ab")  # noqa: SIM115 - closed in _stop_edges
@@ -150,7 +161,10 @@ def run_demo(
         console.print(f"[red]{err}[/red]\nIs another fleetdaq hub running? Try --listen.")
         return 1, {"error": str(err)}
     endpoint = listen or (h.listen[0] if listen else None)
-    procs = _spawn_edges(site, config, endpoint, h.recorder.session.dir / "logs")
+    # The demo's edges spool under the data folder, so a rerun replays what the last one left.
+    procs = _spawn_edges(
+        site, config, endpoint, h.recorder.session.dir / "logs", data_dir / "spool"
+    )
     t0 = time.monotonic()
     died: list[str] = []
     try:

@@ -152,6 +152,7 @@ class RecordingSession:
                 self.name = f"{base}_{n}"
         self.dir = root / self.name
         self.closed: list[_FileStats] = []
+        self.abandoned: list[Path] = []
         self.topic_types: dict[str, str] = {}
         self._file: _OpenFile | None = None
         self._index = 0
@@ -230,6 +231,29 @@ class RecordingSession:
         self.closed.append(f.stats)
         self.write_rosbag2_metadata()
         log.info("closed %s (%d messages)", f.path.name, f.stats.messages)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and fsync: everything written so far is durable.
+
+        Raises OSError (e.g. ENOSPC) if the disk refuses.
+        """
+        f = self._file
+        if f is not None:
+            f.writer.flush()  # type: ignore[no-untyped-call]
+            os.fsync(f.fh.fileno())
+
+    def abandon(self) -> Path | None:
+        """Give up on the open file after a write error: close it as it is (it keeps its
+        ``.active`` name for `fleetdaq verify --recover`); the next write opens a new file."""
+        f, self._file = self._file, None
+        if f is None:
+            return None
+        try:
+            f.fh.close()
+        except OSError as err:
+            log.warning("closing %s after a write error: %s", f.active, err)
+        self.abandoned.append(f.active)
+        return f.active
 
     def close(self) -> None:
         """Finish the open file and the session. Idempotent."""

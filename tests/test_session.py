@@ -110,15 +110,40 @@ def test_selection_counts_every_include_and_exclude_pattern():
     assert StreamSelector(["*"], [])("am-cell", "tc")
 
 
-def test_accounting_counts_gaps_and_duplicates():
+def test_accounting_counts_holes_duplicates_and_late_batches():
     st = StreamStats("wec", "t8", True)
     for seq in [5, 6, 7, 10, 10, 8, 11]:
-        st.add(seq, scans=100, samples=800, recv_ns=seq)
+        is_new, lost = st.offer(seq, floor=None)
+        assert lost == 0
+        if is_new:
+            st.count(seq, scans=100, samples=800, recv_ns=seq, t0=seq, period_ns=1.0)
     assert st.first_sequence == 5
-    assert st.gaps == 2  # 8 and 9 missing when 10 arrived
-    assert st.duplicates == 2  # the second 10 and the late 8
-    assert st.batches == 5
-    assert st.samples == 4000
+    assert st.missing == 1  # 9 is still expected (the edge may replay it)
+    assert st.contiguous == 8
+    assert st.duplicates == 1  # the second 10
+    assert st.late == 1  # 8 came after 10
+    assert st.batches == 6
+    assert st.samples == 4800
+
+
+def test_a_floor_past_a_hole_makes_it_lost_for_good():
+    st = StreamStats("wec", "t8", True)
+    assert st.offer(0, floor=0) == (True, 0)
+    assert st.offer(3, floor=0) == (True, 0)  # 1, 2 missing: may still come
+    assert st.missing == 2
+    assert st.offer(4, floor=2) == (True, 1)  # the edge dropped 1 (spool full): lost
+    assert (st.lost, st.missing, st.gaps) == (1, 1, 2)
+    assert st.offer(2, floor=2) == (True, 0)
+    assert (st.contiguous, st.missing, st.gaps) == (4, 0, 1)
+
+
+def test_a_hub_that_starts_late_takes_the_edges_floor_as_its_base():
+    st = StreamStats("wec", "t8", True)
+    assert st.offer(120, floor=100) == (True, 0)  # the live batch; 100..119 will be replayed
+    assert (st.first_sequence, st.contiguous, st.missing) == (100, 99, 20)
+    for seq in range(100, 120):
+        st.offer(seq, floor=100)
+    assert (st.contiguous, st.missing, st.lost) == (120, 0, 0)
 
 
 def test_decoded_payload_from_file_equals_what_was_written(tmp_path: Path):

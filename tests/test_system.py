@@ -56,7 +56,12 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, 
         procs.append(hub)
         wait_for_port(port)
         for node in ("wec", "am-cell"):
-            procs.append(Proc(["edge", "--config", str(cfg), "--node", node], tmp / f"{node}.log"))
+            procs.append(
+                Proc(
+                    ["edge", "--config", str(cfg), "--node", node, "--spool", str(tmp / "spool")],
+                    tmp / f"{node}.log",
+                )
+            )
         time.sleep(RUN_S)  # the acquisition itself: a fixed stretch of real time
         codes = {p.log_path.stem: p.terminate() for p in procs[1:]}
         codes["hub"] = hub.terminate()
