@@ -132,6 +132,36 @@ def _progress_line(summary: dict[str, Any]) -> str:
 
 
 @main.command()
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
+@click.option(
+    "--recover",
+    is_flag=True,
+    help="Rebuild *.mcap.active files (left by a crash) into valid *.mcap files.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON report.")
+def verify(path: Path, recover: bool, as_json: bool) -> None:
+    """Check a session folder or MCAP file: schemas, chunk CRCs, summary.
+
+    Exit 0 when every file is sound (or was recovered), 1 otherwise.
+    """
+    from hub.verify import verify_path
+
+    reports = verify_path(path, recover)
+    if as_json:
+        click.echo(json.dumps([r.as_dict() for r in reports], indent=2))
+    else:
+        for r in reports:
+            click.echo(r.line())
+        if not reports:
+            click.echo(f"{path}: no MCAP files")
+    bad = [r for r in reports if r.status in {"damaged", "unfinished"}]
+    if bad and not as_json:
+        hint = " (run with --recover)" if any(r.status == "unfinished" for r in bad) else ""
+        click.echo(f"{len(bad)} of {len(reports)} file(s) need attention{hint}", err=True)
+    sys.exit(1 if bad or not reports else 0)
+
+
+@main.command()
 @click.option(
     "--config",
     "config",

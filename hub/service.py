@@ -103,6 +103,8 @@ class Hub:
             raise RouterError(f"cannot start the Zenoh router on {self.listen}: {err}") from err
         self.recorder = Recorder(self.session, self.site, self.data_dir)
         self.recorder.start()
+        if self.site.hub.recorder.recover_on_start:
+            self._recover_crashed_files()
         self.nodes = NodeWatch(self.session, self.site.site)
         self._heartbeat_pub = self.session.declare_publisher(hub_key(self.site.site, "heartbeat"))
         self._heartbeat = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
@@ -120,6 +122,29 @@ class Hub:
             self.listen,
             self.recorder.session.dir,
         )
+
+    def _recover_crashed_files(self) -> None:
+        """Turn ``*.mcap.active`` files left by a crash into valid files, with an event each."""
+        from hub.verify import recover_file, refresh_metadata
+
+        own = self.recorder.session.dir
+        for f in sorted(self.data_dir.glob("*/*.mcap.active")):
+            if f.parent == own:
+                continue
+            try:
+                report = recover_file(f)
+            except OSError as err:
+                self.recorder.emit(
+                    logging.ERROR, "recorder", "recover_failed", f"could not recover {f}: {err}"
+                )
+                continue
+            refresh_metadata(f.parent)
+            self.recorder.emit(
+                logging.WARNING,
+                "recorder",
+                "recovered",
+                f"recovered a file left by a crash: {f.parent.name}/{report.line()}",
+            )
 
     def _beat(self) -> None:
         while not self._stop.wait(1.0):

@@ -67,7 +67,7 @@ class StreamSelector:
 
 
 @dataclass(slots=True)
-class _FileStats:
+class FileStats:
     path: Path
     messages: int = 0
     start_ns: int | None = None
@@ -94,7 +94,7 @@ class _OpenFile:
         self.schemas: dict[str, int] = {}
         self.channels: dict[str, int] = {}
         self.opened_ns = opened_ns
-        self.stats = _FileStats(path)
+        self.stats = FileStats(path)
 
     def channel(self, topic: str, msgtype: str) -> int:
         cid = self.channels.get(topic)
@@ -151,7 +151,7 @@ class RecordingSession:
                 n += 1
                 self.name = f"{base}_{n}"
         self.dir = root / self.name
-        self.closed: list[_FileStats] = []
+        self.closed: list[FileStats] = []
         self.abandoned: list[Path] = []
         self.topic_types: dict[str, str] = {}
         self._file: _OpenFile | None = None
@@ -260,52 +260,60 @@ class RecordingSession:
         self.split()
 
     def write_rosbag2_metadata(self) -> None:
-        """``metadata.yaml`` in rosbag2 layout (version 5) over the closed files."""
-        files = [s for s in self.closed if s.messages]
-        if not files:
-            return
-        start = min(s.start_ns or 0 for s in files)
-        end = max(s.end_ns or 0 for s in files)
-        counts: dict[str, int] = {}
-        for s in files:
-            for topic, n in s.per_topic.items():
-                counts[topic] = counts.get(topic, 0) + n
-        meta: dict[str, Any] = {
-            "rosbag2_bagfile_information": {
-                "version": 5,
-                "storage_identifier": "mcap",
-                "relative_file_paths": [s.path.name for s in files],
-                "duration": {"nanoseconds": end - start},
-                "starting_time": {"nanoseconds_since_epoch": start},
-                "message_count": sum(s.messages for s in files),
-                "topics_with_message_count": [
-                    {
-                        "topic_metadata": {
-                            "name": t,
-                            "type": self.topic_types[t],
-                            "serialization_format": "cdr",
-                            "offered_qos_profiles": "",
-                        },
-                        "message_count": n,
-                    }
-                    for t, n in sorted(counts.items())
-                ],
-                "compression_format": "",
-                "compression_mode": "",
-                "files": [
-                    {
-                        "path": s.path.name,
-                        "starting_time": {"nanoseconds_since_epoch": s.start_ns},
-                        "duration": {"nanoseconds": (s.end_ns or 0) - (s.start_ns or 0)},
-                        "message_count": s.messages,
-                    }
-                    for s in files
-                ],
-            }
-        }
-        tmp = self.dir / "metadata.yaml.tmp"
-        tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
-        os.replace(tmp, self.dir / "metadata.yaml")
+        """``metadata.yaml`` in rosbag2 layout over the closed files."""
+        write_rosbag2_metadata(self.dir, self.closed, self.topic_types)
 
     def files(self) -> list[Path]:
         return [s.path for s in self.closed]
+
+
+def write_rosbag2_metadata(
+    folder: Path, files: list[FileStats], topic_types: dict[str, str]
+) -> None:
+    """Write ``folder/metadata.yaml`` (rosbag2 layout, version 5, storage mcap) so rosbags
+    and ``ros2 bag`` open the folder as one bag. Files without messages are left out."""
+    files = [s for s in files if s.messages]
+    if not files:
+        return
+    start = min(s.start_ns or 0 for s in files)
+    end = max(s.end_ns or 0 for s in files)
+    counts: dict[str, int] = {}
+    for s in files:
+        for topic, n in s.per_topic.items():
+            counts[topic] = counts.get(topic, 0) + n
+    meta: dict[str, Any] = {
+        "rosbag2_bagfile_information": {
+            "version": 5,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [s.path.name for s in files],
+            "duration": {"nanoseconds": end - start},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": sum(s.messages for s in files),
+            "topics_with_message_count": [
+                {
+                    "topic_metadata": {
+                        "name": t,
+                        "type": topic_types[t],
+                        "serialization_format": "cdr",
+                        "offered_qos_profiles": "",
+                    },
+                    "message_count": n,
+                }
+                for t, n in sorted(counts.items())
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [
+                {
+                    "path": s.path.name,
+                    "starting_time": {"nanoseconds_since_epoch": s.start_ns},
+                    "duration": {"nanoseconds": (s.end_ns or 0) - (s.start_ns or 0)},
+                    "message_count": s.messages,
+                }
+                for s in files
+            ],
+        }
+    }
+    tmp = folder / "metadata.yaml.tmp"
+    tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
+    os.replace(tmp, folder / "metadata.yaml")
