@@ -104,8 +104,20 @@ def edge(
 @click.option("--config", "config", required=True, type=click.Path())
 @click.option("--data", "data_dir", type=click.Path(file_okay=False), help="Recording root.")
 @click.option("--listen", multiple=True, help="Router endpoint(s), overriding the site file.")
+@click.option(
+    "--summary",
+    "summary_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write the final accounting (per stream, files, events) here as JSON.",
+)
 @click.option("-v", "--verbose", is_flag=True)
-def hub(config: str, data_dir: str | None, listen: tuple[str, ...], verbose: bool) -> None:
+def hub(
+    config: str,
+    data_dir: str | None,
+    listen: tuple[str, ...],
+    summary_path: Path | None,
+    verbose: bool,
+) -> None:
     """Run the hub (router + recorder) until SIGTERM or Ctrl-C."""
     site = _load(config)
     _logging(verbose)
@@ -117,10 +129,13 @@ def hub(config: str, data_dir: str | None, listen: tuple[str, ...], verbose: boo
         with Hub(site, Path(data_dir) if data_dir else None, list(listen) or None) as h:
             while not stop.wait(10.0):
                 logging.getLogger("fleetdaq.hub").info("%s", _progress_line(h.recorder.summary()))
-            summary = h.recorder
+            recorder = h.recorder
     except RouterError as err:
         _fail(str(err), 1)
-    logging.getLogger("fleetdaq.hub").info("stopped: %s", _progress_line(summary.summary()))
+    final = recorder.summary()
+    logging.getLogger("fleetdaq.hub").info("stopped: %s", _progress_line(final))
+    if summary_path is not None:
+        summary_path.write_text(json.dumps(final, indent=2))
 
 
 def _progress_line(summary: dict[str, Any]) -> str:

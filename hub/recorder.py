@@ -53,6 +53,7 @@ log = logging.getLogger("fleetdaq.recorder")
 _STOP = object()
 _DATA, _EVENT = 0, 1
 _RETRY_AFTER_ERROR_S = 2.0
+_MAX_HELD_EVENTS = 10_000
 
 
 @dataclass(slots=True)
@@ -201,6 +202,7 @@ class Recorder:
         self.malformed = 0
         self.malformed_by_key: dict[str, int] = {}
         self.write_errors = 0
+        self.events_not_recorded = 0
         self.lock = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._zsession = session
@@ -212,6 +214,7 @@ class Recorder:
         self._subs: list[Any] = []
         self._closed = False
         self._broken_until = 0.0
+        self._held_events: list[tuple[bytes, int, int]] = []
         self._last_flush = time.monotonic()
 
     def start(self) -> None:
@@ -293,6 +296,9 @@ class Recorder:
     def _resumed(self) -> None:
         if self._broken_until != 0.0:
             self._broken_until = 0.0
+            held, self._held_events = self._held_events, []
+            for payload, time_ns, recv_ns in held:
+                self._write_event(payload, time_ns, recv_ns)
             self._event_now(
                 logging.WARNING,
                 "recorder",
@@ -306,17 +312,29 @@ class Recorder:
         except WireError as err:
             self._malformed(key or "hub/events", err)
             return
-        if self._writable() and self._guarded(
+        self.events.add(e)
+        if self._writable() and self._write_event(payload, e.time_ns, recv_ns):
+            return
+        # Kept until writing resumes, so the recording still tells what happened. Past the
+        # bound they are still in events.log and counted here.
+        if len(self._held_events) < _MAX_HELD_EVENTS:
+            self._held_events.append((payload, e.time_ns, recv_ns))
+        else:
+            self.events_not_recorded += 1
+
+    def _write_event(self, payload: bytes, time_ns: int, recv_ns: int) -> bool:
+        if not self._guarded(
             "writing an event",
             self.session.write,
             EVENTS_TOPIC,
             payload,
-            e.time_ns,
+            time_ns,
             recv_ns,
             EVENT_TYPE,
         ):
-            self._resumed()
-        self.events.add(e)
+            return False
+        self._resumed()
+        return True
 
     def _malformed(self, key: str, err: WireError) -> None:
         self.malformed += 1
@@ -438,6 +456,7 @@ class Recorder:
                 "streams": {f"{k[0]}/{k[1]}": s.summary() for k, s in sorted(self.streams.items())},
                 "malformed": self.malformed,
                 "write_errors": self.write_errors,
+                "events_not_recorded": self.events_not_recorded,
                 "events": {
                     logging.getLevelName(level).lower(): n
                     for level, n in sorted(self.events.counts.items())
