@@ -172,7 +172,8 @@ def test_kill_9_of_the_hub_loses_nothing(rig: Rig):
     assert missing == [], f"lost {len(missing)} of {top + 1}: {missing[:20]}"
     assert top >= acked_at_kill + 80
     s = rig.summary(2)["streams"]["wec/t8"]  # type: ignore[index]
-    assert s["lost"] == 0 and s["missing"] == 0, s
+    assert s["lost"] == 0, s
+    assert s["missing"] == 0, s
     assert s["late"] > 0, "the gap was filled by replay"
     assert any(tag == "recovered" for _, tag, _ in rig.events())
 
@@ -214,7 +215,7 @@ def test_kill_9_of_an_edge_loses_a_bounded_reported_stretch(rig: Rig):
     wait_until(lambda: rig.acked() >= 60, 30, "acks from the restarted edge")
     assert edge2.terminate() == 0
     assert hub.terminate() == 0
-    top, missing = _complete(rig.sequences())
+    _, missing = _complete(rig.sequences())
     assert missing == [], "sequence numbers continue across the crash: none is skipped"
     s = rig.summary(1)["streams"]["wec/t8"]  # type: ignore[index]
     assert s["acquisition_gaps"] == 1, s
@@ -264,10 +265,11 @@ def test_a_full_hub_disk_is_an_event_and_recording_resumes_when_space_returns(
     assert edge.terminate() == 0
     assert hub.terminate() == 0
     verify_path(next(p for p in rig.data.iterdir() if p.is_dir()), recover=True)
-    top, missing = _complete(rig.sequences())
+    _, missing = _complete(rig.sequences())
     assert missing == [], f"lost {len(missing)}: {missing[:20]}"
     tags = [tag for _, tag, _ in rig.events()]
-    assert "disk_full" in tags and "write_resumed" in tags
+    assert "disk_full" in tags
+    assert "write_resumed" in tags
     assert rig.summary(1)["write_errors"] >= 1  # type: ignore[operator]
 
 
@@ -316,6 +318,6 @@ def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Ri
     assert hub.terminate() == 0
     summary = rig.summary(1)
     assert summary["malformed"] == 10_000, summary["malformed"]
-    top, missing = _complete(rig.sequences())
+    _, missing = _complete(rig.sequences())
     assert missing == []
     assert set(summary["streams"]) == {"wec/t8"}  # type: ignore[arg-type]
