@@ -144,10 +144,19 @@ class StreamLoop:
         self.clock = ScanClock(cfg.rate_hz)
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.clock_monitor: ClockMonitor = NoClockMonitor()
+        key = data_key(site, node, name)
         self._pub = session.declare_publisher(
-            data_key(site, node, name),
+            key,
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_HIGH,
+        )
+        # Replayed batches go at a lower priority: Zenoh sends live data ahead of them.
+        self._replay_pub = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_LOW,
         )
         self.subscriber_timeout_s = 10.0
         self._stop = threading.Event()
@@ -260,6 +269,7 @@ class StreamLoop:
         """Resend unacked batches from the spool, oldest first, rate-limited."""
         after_ns = int(self.spool_cfg.replay_after_s * 1e9)
         rate = self.spool_cfg.replay_mb_per_s * 1e6
+        window_s = 2.0  # > the hub's flush (ack) interval, or replay would stall on acks
         while not self._stop.wait(0.25):
             oldest = self.spool.oldest_unacked_time_ns()
             if oldest is None or time.time_ns() - oldest < after_ns:
@@ -268,10 +278,16 @@ class StreamLoop:
                 continue  # the hub is away: nothing to send to
             first, until = self.spool.acked + 1, self.counters.next_sequence - 1
             sent, batches, t_start = 0, 0, time.monotonic()
-            for _seq, payload in self.spool.read_from(first, until):
+            window = window_s * rate  # bytes in flight beyond the last ack
+            for seq, payload in self.spool.read_from(first, until):
+                # Keep the network queue short: wait for acks rather than piling up data
+                # ahead of the live batches.
+                while (seq - self.spool.acked) * len(payload) > window:
+                    if self._stop.wait(0.05) or not self._pub.matching_status.matching:
+                        break
                 if self._stop.is_set() or not self._pub.matching_status.matching:
                     break
-                self._pub.put(payload, attachment=encode_u64(self.spool.floor))
+                self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
                 sent += len(payload)
                 batches += 1
                 self.counters.replayed += 1
@@ -291,6 +307,7 @@ class StreamLoop:
         self._thread.join(timeout)
         self._replayer.join(timeout)
         self._pub.undeclare()
+        self._replay_pub.undeclare()
         self.spool.close()
 
 
