@@ -101,15 +101,32 @@ def main() -> None:
         port = free_port()
         cfg = tmp / "site.yaml"
         channels = ", ".join(f"{{name: c{i}, unit: V}}" for i in range(CHANNELS))
-        cfg.write_text(SITE.format(port=port, replay=args.replay_mb_s, rate=RATE, scans=SCANS,
-                                   channels=channels))
+        cfg.write_text(
+            SITE.format(
+                port=port, replay=args.replay_mb_s, rate=RATE, scans=SCANS, channels=channels
+            )
+        )
         print(f"simulating a {args.minutes:g}-minute outage at 8 x 40 kS/s ...", file=sys.stderr)
         backlog_batches, backlog_bytes = fill_spool(tmp / "spool" / "wec" / "t8", args.minutes)
 
         log = (tmp / "hub.log").open("wb")
-        procs.append(subprocess.Popen(
-            [sys.executable, "-m", "hub.cli", "hub", "--config", str(cfg), "--data",
-             str(tmp / "data")], cwd=REPO, stdout=log, stderr=subprocess.STDOUT))
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "hub.cli",
+                    "hub",
+                    "--config",
+                    str(cfg),
+                    "--data",
+                    str(tmp / "data"),
+                ],
+                cwd=REPO,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        )
         deadline = time.monotonic() + 30
         while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
             if time.monotonic() > deadline:
@@ -118,6 +135,7 @@ def main() -> None:
 
         live: list[tuple[float, float]] = []  # (monotonic receive, latency ms) of live batches
         replayed = [0]
+        seen: set[int] = set()
         lock = threading.Lock()
 
         def on_sample(sample: Any) -> None:
@@ -126,6 +144,9 @@ def main() -> None:
             if h.sequence >= backlog_batches:
                 end = h.first_sample_time_ns + (h.scan_count - 1) * h.sample_period_ns
                 with lock:
+                    if h.sequence in seen:
+                        return  # a replay of a live batch whose ack was late: not live
+                    seen.add(h.sequence)
                     live.append((time.monotonic(), (now - end) / 1e6))
             else:
                 replayed[0] += 1
@@ -135,9 +156,25 @@ def main() -> None:
 
         elog = (tmp / "edge.log").open("wb")
         t_start = time.monotonic()
-        procs.append(subprocess.Popen(
-            [sys.executable, "-m", "hub.cli", "edge", "--config", str(cfg), "--node", "wec",
-             "--spool", str(tmp / "spool")], cwd=REPO, stdout=elog, stderr=subprocess.STDOUT))
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "hub.cli",
+                    "edge",
+                    "--config",
+                    str(cfg),
+                    "--node",
+                    "wec",
+                    "--spool",
+                    str(tmp / "spool"),
+                ],
+                cwd=REPO,
+                stdout=elog,
+                stderr=subprocess.STDOUT,
+            )
+        )
         acked_file = tmp / "spool" / "wec" / "t8" / "acked"
 
         def acked() -> int:
@@ -153,8 +190,11 @@ def main() -> None:
             now = time.monotonic()
             if now - last_print > 2:
                 last_print = now
-                print(f"  {now - t_start:5.1f} s: acked {a + 1}/{backlog_batches} backlog "
-                      f"batches, {replayed[0]} replayed seen", file=sys.stderr)
+                print(
+                    f"  {now - t_start:5.1f} s: acked {a + 1}/{backlog_batches} backlog "
+                    f"batches, {replayed[0]} replayed seen",
+                    file=sys.stderr,
+                )
             if a >= backlog_batches - 1:
                 drained_at = now
                 break
@@ -188,7 +228,8 @@ def main() -> None:
         }
         if during and after:
             result["latency_p50_ratio_during_vs_after"] = round(
-                float(np.percentile(during, 50) / np.percentile(after, 50)), 2)
+                float(np.percentile(during, 50) / np.percentile(after, 50)), 2
+            )
         print(json.dumps(result))
     finally:
         if sub is not None:

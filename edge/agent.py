@@ -145,9 +145,12 @@ class StreamLoop:
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.clock_monitor: ClockMonitor = NoClockMonitor()
         key = data_key(site, node, name)
+        # Live batches never block the acquisition thread: under congestion Zenoh drops the
+        # put, and the batch, already in the spool, is replayed once the hub has not acked it.
+        # Blocking here would stall the device read and overflow the device's buffer instead.
         self._pub = session.declare_publisher(
             key,
-            congestion_control=zenoh.CongestionControl.BLOCK,
+            congestion_control=zenoh.CongestionControl.DROP,
             reliability=zenoh.Reliability.RELIABLE,
             priority=zenoh.Priority.DATA_HIGH,
         )
@@ -229,8 +232,6 @@ class StreamLoop:
     def _acquire(self) -> None:
         index = 0  # scans acquired since this open; sequence numbers continue across reopen
         c = self.counters
-        fsync_ns = int(self.spool_cfg.fsync_interval_s * 1e9)
-        last_sync = time.monotonic_ns()
         while not self._stop.is_set():
             block = self.driver.read()
             scans = block.raw.shape[0]
@@ -260,10 +261,13 @@ class StreamLoop:
             c.next_sequence = seq + 1
             c.batches += 1
             c.scans += scans
-            now = time.monotonic_ns()
-            if now - last_sync >= fsync_ns:
-                self.spool.sync()
-                last_sync = now
+
+    def sync_spool(self) -> None:
+        """fsync the spool; the agent calls this from its own thread, never the acquisition's."""
+        try:
+            self.spool.sync()
+        except OSError as err:
+            self.events.emit(logging.ERROR, self.name, "spool_error", f"spool fsync failed: {err}")
 
     def _replay(self) -> None:
         """Resend unacked batches from the spool, oldest first, rate-limited."""
@@ -279,7 +283,9 @@ class StreamLoop:
             first, until = self.spool.acked + 1, self.counters.next_sequence - 1
             sent, batches, t_start = 0, 0, time.monotonic()
             window = window_s * rate  # bytes in flight beyond the last ack
-            for seq, payload in self.spool.read_from(first, until):
+            for seq, t_ns, payload in self.spool.read_from(first, until):
+                if time.time_ns() - t_ns < after_ns:
+                    break  # recent batches went out live and their ack is still due
                 # Keep the network queue short: wait for acks rather than piling up data
                 # ahead of the live batches.
                 while (seq - self.spool.acked) * len(payload) > window:
@@ -339,6 +345,9 @@ class EdgeAgent:
         self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._stop = threading.Event()
         self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
+        self._sync_thread = threading.Thread(
+            target=self._sync_spools, name="spool-sync", daemon=True
+        )
         self.started_ns = 0
 
     def __enter__(self) -> EdgeAgent:
@@ -386,6 +395,7 @@ class EdgeAgent:
         for loop in self.loops:
             loop.start()
         self._health_thread.start()
+        self._sync_thread.start()
         self.events.emit(
             logging.INFO,
             "agent",
@@ -427,6 +437,12 @@ class EdgeAgent:
             self._health_pub.put(json.dumps(self.health()).encode())
             self.events.flush()
 
+    def _sync_spools(self) -> None:
+        interval = self.site.nodes[self.node].spool.fsync_interval_s
+        while not self._stop.wait(interval or 0.05):
+            for loop in self.loops:
+                loop.sync_spool()
+
     def close(self) -> None:
         """Stop every stream and close the session. Idempotent."""
         if self._session is None:
@@ -437,6 +453,7 @@ class EdgeAgent:
         for loop in self.loops:
             loop.join(5.0)
         self._health_thread.join(2.0)
+        self._sync_thread.join(5.0)
         self._ack_sub.undeclare()
         self.clock_monitor.close()
         self.events.emit(logging.INFO, "agent", "stopped", "stopped")

@@ -83,6 +83,7 @@ class StreamSpool:
         self._lock = threading.Lock()
         self._segments: list[_Segment] = []
         self._fd: int | None = None
+        self._retired: list[int] = []
         self.bytes = 0
         self.dropped_batches = 0
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -160,8 +161,7 @@ class StreamSpool:
 
     def _new_segment(self, seq: int, time_ns: int) -> _Segment:
         if self._fd is not None:
-            os.fsync(self._fd)
-            os.close(self._fd)
+            self._retired.append(self._fd)  # fsynced and closed by sync(), off this thread
         path = self.dir / f"{seq:020d}.seg"
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         seg = _Segment(path, seq, seq, 0, time_ns, time_ns)
@@ -169,10 +169,22 @@ class StreamSpool:
         return seg
 
     def sync(self) -> None:
-        """fsync the open segment: what is appended survives power loss, not just a crash."""
+        """fsync what was appended: it then survives power loss, not just a crash.
+
+        Called from a background thread: the fsync runs on a duplicate descriptor outside the
+        lock, so appends (the acquisition thread) never wait for the disk.
+        """
         with self._lock:
-            if self._fd is not None:
-                os.fsync(self._fd)
+            retired, self._retired = self._retired, []
+            fd = os.dup(self._fd) if self._fd is not None else None
+        for old in retired:
+            os.fsync(old)
+            os.close(old)
+        if fd is not None:
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
 
     def _enforce_limits(self, now_ns: int) -> list[Dropped]:
         dropped: list[Dropped] = []
@@ -230,8 +242,9 @@ class StreamSpool:
                     return seg.first_time_ns
             return None
 
-    def read_from(self, seq: int, until: int) -> Iterator[tuple[int, bytes]]:
-        """Yield (sequence, payload) for sequences seq..until that are still in the spool."""
+    def read_from(self, seq: int, until: int) -> Iterator[tuple[int, int, bytes]]:
+        """Yield (sequence, first-sample time ns, payload) for sequences seq..until still in
+        the spool."""
         with self._lock:
             segments = [s for s in self._segments if s.last_seq >= seq and s.first_seq <= until]
         for seg in segments:
@@ -241,7 +254,7 @@ class StreamSpool:
                         head = fh.read(HEADER_SIZE)
                         if len(head) < HEADER_SIZE:
                             break
-                        magic, s, _, length, crc = _HEADER.unpack(head)
+                        magic, s, t, length, crc = _HEADER.unpack(head)
                         if magic != _MAGIC:
                             break
                         if s < seq:
@@ -252,12 +265,13 @@ class StreamSpool:
                         payload = fh.read(length)
                         if len(payload) < length or zlib.crc32(payload) != crc:
                             break
-                        yield s, payload
+                        yield s, t, payload
             except FileNotFoundError:
                 continue  # acked or dropped while we were reading: the next segment goes on
 
     def close(self) -> None:
         """fsync, close, and mark the spool as cleanly closed. Idempotent."""
+        self.sync()
         with self._lock:
             if self._fd is not None:
                 os.fsync(self._fd)

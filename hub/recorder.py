@@ -203,6 +203,11 @@ class Recorder:
         self.malformed_by_key: dict[str, int] = {}
         self.write_errors = 0
         self.events_not_recorded = 0
+        self.max_queued_bytes = 512 * 1024 * 1024
+        self.queued_bytes = 0
+        """Payload bytes received and not yet written (approximate: two threads update it)."""
+        self.overflow = 0
+        """Batches dropped on arrival because the queue was over `max_queued_bytes`."""
         self.lock = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._zsession = session
@@ -221,10 +226,19 @@ class Recorder:
         self._thread.start()
         put = self._queue.put
 
+        limit = self.max_queued_bytes
+
         def on_data(sample: Any) -> None:
+            # Bounded: past the limit a batch is dropped here, counted, and not acked, so the
+            # edge replays it. Memory stays bounded when the disk is slower than the network.
+            if self.queued_bytes > limit:
+                self.overflow += 1
+                return
             att = sample.attachment
             floor = decode_u64(att.to_bytes()) if att is not None else None
-            put((_DATA, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(), floor))
+            payload = sample.payload.to_bytes()
+            self.queued_bytes += len(payload)
+            put((_DATA, str(sample.key_expr), payload, time.time_ns(), floor))
 
         def on_event(sample: Any) -> None:
             put((_EVENT, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(), None))
@@ -257,6 +271,7 @@ class Recorder:
                 if item is not None:
                     kind, key, payload, recv_ns, floor = item
                     if kind == _DATA:
+                        self.queued_bytes -= len(payload)
                         self._record(key, payload, recv_ns, floor)
                     else:
                         self._record_event(key, payload, recv_ns)
@@ -456,6 +471,7 @@ class Recorder:
                 "streams": {f"{k[0]}/{k[1]}": s.summary() for k, s in sorted(self.streams.items())},
                 "malformed": self.malformed,
                 "write_errors": self.write_errors,
+                "overflow": self.overflow,
                 "events_not_recorded": self.events_not_recorded,
                 "events": {
                     logging.getLevelName(level).lower(): n

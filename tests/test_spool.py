@@ -20,12 +20,13 @@ def test_batches_read_back_in_order_until_acked(tmp_path: Path):
     sp = StreamSpool(tmp_path, max_bytes=10**9, max_age_s=3600, segment_bytes=5000)
     _fill(sp, 0, 20)
     got = list(sp.read_from(5, 12))
-    assert [s for s, _ in got] == list(range(5, 13))
-    assert got[0][1] == bytes([5]) * 1000
+    assert [s for s, _, _ in got] == list(range(5, 13))
+    assert got[0][2] == bytes([5]) * 1000
+    assert got[0][1] == T0 + 5 * SEC // 10
     assert sp.floor == 0
     sp.ack(11)
     assert sp.floor == 12
-    assert next(s for s, _ in sp.read_from(0, 100)) <= 12  # segments go whole
+    assert next(s for s, _, _ in sp.read_from(0, 100)) <= 12  # segments go whole
     # Segments wholly acked are gone from disk.
     first_seqs = sorted(int(p.stem) for p in tmp_path.glob("*.seg"))
     assert first_seqs[0] > 5
@@ -41,7 +42,7 @@ def test_sequences_continue_after_reopen(tmp_path: Path):
     assert again.recovery.clean
     assert again.next_sequence == 7
     assert again.acked == 3
-    assert [s for s, _ in again.read_from(again.floor, 100)] == [4, 5, 6]
+    assert [s for s, _, _ in again.read_from(again.floor, 100)] == [4, 5, 6]
     again.close()
 
 
@@ -58,7 +59,7 @@ def test_a_crash_is_detected_and_a_torn_record_is_cut(tmp_path: Path):
     assert reopened.recovery.torn_bytes == 14
     assert reopened.recovery.last_seq == 4
     assert reopened.next_sequence == 5
-    assert [s for s, _ in reopened.read_from(0, 10)] == [0, 1, 2, 3, 4]
+    assert [s for s, _, _ in reopened.read_from(0, 10)] == [0, 1, 2, 3, 4]
     reopened.close()
 
 
@@ -71,7 +72,7 @@ def test_a_corrupted_record_ends_the_segment_not_the_spool(tmp_path: Path):
     data[2 * (HEADER_SIZE + 100) + HEADER_SIZE + 5] ^= 0xFF  # flip a payload byte of seq 2
     seg.write_bytes(bytes(data))
     reopened = StreamSpool(tmp_path, 10**9, 3600)
-    assert [s for s, _ in reopened.read_from(0, 10)] == [0, 1]
+    assert [s for s, _, _ in reopened.read_from(0, 10)] == [0, 1]
     assert reopened.next_sequence == 2
     reopened.close()
 
@@ -90,7 +91,7 @@ def test_spool_full_drops_oldest_unacked_and_says_exactly_what(tmp_path: Path):
     lost = [s for d in dropped for s in range(d.first_seq, d.last_seq + 1)]
     assert lost == list(range(len(lost))), "oldest first, contiguous"
     assert sum(d.batches for d in dropped) == len(lost) == sp.dropped_batches
-    kept = [s for s, _ in sp.read_from(0, 100)]
+    kept = [s for s, _, _ in sp.read_from(0, 100)]
     assert kept == list(range(len(lost), 30)), "everything not reported dropped is still there"
     assert sp.floor == len(lost)
     assert sp.bytes <= 10 * (HEADER_SIZE + 1000) + 3 * (HEADER_SIZE + 1000)
