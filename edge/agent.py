@@ -310,8 +310,9 @@ class StreamLoop:
         self.driver.close()
 
     def join(self, timeout: float) -> None:
-        self._thread.join(timeout)
-        self._replayer.join(timeout)
+        for thread in (self._thread, self._replayer):
+            if thread.is_alive():
+                thread.join(timeout)
         self._pub.undeclare()
         self._replay_pub.undeclare()
         self.spool.close()
@@ -341,6 +342,10 @@ class EdgeAgent:
         self.endpoints = endpoints or site.endpoints_for(node)
         self.spool_dir = (spool_dir or Path(site.nodes[node].spool.dir)) / node
         self._session: Any = None
+        self.events: Events | None = None
+        self._ack_sub: Any = None
+        self._health_pub: Any = None
+        self._token: Any = None
         self.loops: list[StreamLoop] = []
         self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._stop = threading.Event()
@@ -360,14 +365,24 @@ class EdgeAgent:
         self.close()
 
     def start(self) -> None:
+        """Open the session, the spools and the streams. If anything fails (or a Ctrl-C lands)
+        part-way, everything opened so far is closed again before the error propagates: a
+        Zenoh session left open with callback subscribers hangs the interpreter at exit."""
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self) -> None:
         sid, node = self.site.site, self.node
         self._session = zenoh.open(client_config(self.endpoints))
-        self.events = Events(self._session, events_key(sid, node), node)
+        events = self.events = Events(self._session, events_key(sid, node), node)
         self._token = self._session.liveliness().declare_token(alive_key(sid, node))
         self._health_pub = self._session.declare_publisher(health_key(sid, node))
         node_cfg = self.site.nodes[node]
         self.clock_monitor = make_clock_monitor(
-            node_cfg, lambda level, tag, msg: self.events.emit(level, "clock", tag, msg)
+            node_cfg, lambda level, tag, msg: events.emit(level, "clock", tag, msg)
         )
         self.clock_monitor.start()
         for name, cfg in node_cfg.streams.items():
@@ -377,9 +392,7 @@ class EdgeAgent:
                 node_cfg.spool.max_age_s,
                 node_cfg.spool.segment_bytes,
             )
-            loop = StreamLoop(
-                sid, node, name, cfg, self._session, self.events, spool, node_cfg.spool
-            )
+            loop = StreamLoop(sid, node, name, cfg, self._session, events, spool, node_cfg.spool)
             loop.clock_monitor = self.clock_monitor
             self.loops.append(loop)
         by_stream = {loop.name: loop for loop in self.loops}
@@ -433,9 +446,11 @@ class EdgeAgent:
         }
 
     def _health(self) -> None:
+        events = self.events
+        assert events is not None
         while not self._stop.wait(1.0):
             self._health_pub.put(json.dumps(self.health()).encode())
-            self.events.flush()
+            events.flush()
 
     def _sync_spools(self) -> None:
         interval = self.site.nodes[self.node].spool.fsync_interval_s
@@ -444,21 +459,25 @@ class EdgeAgent:
                 loop.sync_spool()
 
     def close(self) -> None:
-        """Stop every stream and close the session. Idempotent."""
+        """Stop every stream and close the session. Idempotent; safe after a partial start."""
         if self._session is None:
             return
         self._stop.set()
-        for loop in self.loops:
-            loop.stop()
-        for loop in self.loops:
-            loop.join(5.0)
-        self._health_thread.join(2.0)
-        self._sync_thread.join(5.0)
-        self._ack_sub.undeclare()
-        self.clock_monitor.close()
-        self.events.emit(logging.INFO, "agent", "stopped", "stopped")
-        self.events.close()
-        self._health_pub.undeclare()
-        self._token.undeclare()
-        self._session.close()
-        self._session = None
+        try:
+            for loop in self.loops:
+                loop.stop()
+            for loop in self.loops:
+                loop.join(5.0)
+            for thread in (self._health_thread, self._sync_thread):
+                if thread.is_alive():
+                    thread.join(5.0)
+            self.clock_monitor.close()
+            if self.events is not None:
+                self.events.emit(logging.INFO, "agent", "stopped", "stopped")
+                self.events.close()
+        finally:
+            for entity in (self._ack_sub, self._health_pub, self._token):
+                if entity is not None:
+                    entity.undeclare()
+            self._session.close()
+            self._session = None

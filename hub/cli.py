@@ -6,6 +6,7 @@ its dependencies, never the recorder's (mcap, rich).
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import logging
 import signal
@@ -38,6 +39,8 @@ def _load(path: str | Path) -> SiteConfig:
 def _stop_on_signals() -> threading.Event:
     """An event set by SIGINT or SIGTERM: both stop a process cleanly."""
     stop = threading.Event()
+    # `kill -USR1 <pid>` prints every thread's stack to stderr: for a process that hangs.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     def handler(signum: int, frame: Any) -> None:
         stop.set()
@@ -85,6 +88,7 @@ def edge(
     config: str, node: str, connect: tuple[str, ...], spool_dir: str | None, verbose: bool
 ) -> None:
     """Run the edge agent for one node until SIGTERM or Ctrl-C."""
+    stop = _stop_on_signals()  # first: a signal during start-up must still stop cleanly
     site = _load(config)
     if node not in site.nodes:
         _fail(f"{config}: nodes: no node named {node!r} (have: {', '.join(site.nodes)})")
@@ -92,7 +96,6 @@ def edge(
     from edge.agent import EdgeAgent
     from edge.errors import DriverError
 
-    stop = _stop_on_signals()
     try:
         with EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None):
             stop.wait()
@@ -119,12 +122,12 @@ def hub(
     verbose: bool,
 ) -> None:
     """Run the hub (router + recorder) until SIGTERM or Ctrl-C."""
+    stop = _stop_on_signals()
     site = _load(config)
     _logging(verbose)
     from hub.errors import RouterError
     from hub.service import Hub
 
-    stop = _stop_on_signals()
     try:
         with Hub(site, Path(data_dir) if data_dir else None, list(listen) or None) as h:
             while not stop.wait(10.0):
@@ -213,6 +216,150 @@ def demo(
     if as_json:
         click.echo(json.dumps(summary, indent=2))
     sys.exit(code)
+
+
+@main.group()
+def ptp() -> None:
+    """Time sync: check linuxptp (ptp4l) or chrony on this machine, or the whole fleet."""
+
+
+@ptp.command("status")
+@click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
+@click.option("--uds", default="/var/run/ptp4l", show_default=True, help="ptp4l's UDS socket.")
+@click.option(
+    "--source",
+    type=click.Choice(["ptp4l", "chrony"]),
+    default="ptp4l",
+    show_default=True,
+    help="What disciplines this clock.",
+)
+@click.option(
+    "--via",
+    type=click.Choice(["uds", "pmc"]),
+    default="uds",
+    show_default=True,
+    help="Talk to ptp4l ourselves (uds) or through linuxptp's pmc.",
+)
+@click.option("--config", "config", type=click.Path(), help="Take thresholds from a site file...")
+@click.option("--node", help="...for this node (its clock: section).")
+@click.option("--ignore", multiple=True, help="A check left out of the exit code (repeatable).")
+def ptp_status(
+    as_json: bool,
+    uds: str,
+    source: str,
+    via: str,
+    config: str | None,
+    node: str | None,
+    ignore: tuple[str, ...],
+) -> None:
+    """Check this machine's time sync. Exit 0 ok, 1 warning, 2 failure."""
+    from dataclasses import replace
+
+    from ptp.checks import Thresholds
+    from ptp.reader import ChronyReader, Ptp4lReader, Reader
+
+    thresholds: Thresholds | None = None
+    expect_hardware: bool | None = None
+    domain, interface = 0, None
+    if config is not None:
+        site = _load(config)
+        name = node or (next(iter(site.nodes)) if len(site.nodes) == 1 else None)
+        if name is None or name not in site.nodes:
+            _fail(f"{config}: nodes: say which node with --node (have: {', '.join(site.nodes)})")
+        from edge.clock import thresholds as node_thresholds
+
+        clock = site.nodes[name].clock
+        thresholds = node_thresholds(clock)
+        expect_hardware = clock.timestamping == "hardware"
+        domain, interface = clock.domain, clock.interface
+        ignore = (*ignore, *clock.ignore_checks)
+        if uds == "/var/run/ptp4l":
+            uds = clock.uds
+    reader: Reader
+    if source == "chrony":
+        reader = ChronyReader(thresholds)
+    else:
+        reader = Ptp4lReader(
+            uds,
+            thresholds,
+            interface=interface,
+            expect_hardware=expect_hardware,
+            via=via,
+            domain=domain,
+        )
+    try:
+        status = reader.read()
+        status = replace(status, ignored=status.ignored | frozenset(ignore))
+    finally:
+        reader.close()
+    if as_json:
+        click.echo(json.dumps(status.to_dict(), indent=2))
+    else:
+        click.echo(status.format_table())
+    sys.exit(int(status.level))
+
+
+@ptp.command("fleet")
+@click.option("--config", "config", required=True, type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print the fleet view as JSON.")
+@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@click.option(
+    "--listen-s",
+    type=click.FloatRange(min=0.5),
+    default=2.5,
+    show_default=True,
+    help="How long to listen to the nodes' health.",
+)
+def ptp_fleet(config: str, as_json: bool, connect: tuple[str, ...], listen_s: float) -> None:
+    """Every node's clock, from their health on the hub's router. Exit 0 when every node is
+    LOCKED on one grandmaster, 1 on warnings (holdover), 2 on failures."""
+    import time
+
+    import zenoh
+
+    from edge.wire import ROOT, alive_selector
+    from edge.zenoh_session import client_config
+    from hub.fleet import FleetTime
+
+    site = _load(config)
+    fleet = FleetTime(lambda level, source, tag, message: None)
+    endpoints = list(connect) or list(site.hub.listen)
+    conf = client_config(endpoints)
+    conf.insert_json5("connect/timeout_ms", "3000")
+    try:
+        session: Any = zenoh.open(conf)
+    except zenoh.ZError as err:
+        _fail(f"cannot reach the hub at {', '.join(endpoints)}: {err}", 2)
+    alive: set[str] = set()
+    try:
+        for reply in session.liveliness().get(alive_selector(site.site), timeout=2.0):
+            if reply.ok is not None:
+                alive.add(str(reply.ok.key_expr).split("/")[2])
+
+        def on_health(sample: Any) -> None:
+            try:
+                msg = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            if isinstance(msg, dict):
+                fleet.update(str(sample.key_expr).split("/")[2], msg)
+
+        sub: Any = session.declare_subscriber(f"{ROOT}/{site.site}/*/health", on_health)
+        time.sleep(listen_s)  # health comes at ~1 Hz: listen for a couple of messages
+        sub.undeclare()
+    finally:
+        session.close()
+    view = fleet.view()
+    silent = sorted(alive - {n.node for n in view.nodes})
+    if as_json:
+        out = view.to_dict()
+        out["alive_without_clock"] = silent
+        click.echo(json.dumps(out, indent=2))
+    else:
+        click.echo(view.format_table() if view.nodes else "no node reported its clock")
+        if silent:
+            click.echo(f"alive but no clock status: {', '.join(silent)}")
+    sys.exit(view.verdict)
 
 
 if __name__ == "__main__":

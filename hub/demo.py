@@ -133,6 +133,8 @@ def _stop_edges(procs: dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]]) -> 
         try:
             code = p.wait(15)
         except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGUSR1)  # its thread stacks go to its log, then it is ended
+            time.sleep(1.0)
             p.kill()
             code = p.wait()
         out.close()

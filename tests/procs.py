@@ -50,9 +50,14 @@ class Proc:
         try:
             return self.popen.wait(timeout)
         except subprocess.TimeoutExpired:
+            self.popen.send_signal(signal.SIGUSR1)  # dump its thread stacks into the log
+            time.sleep(1.0)
             self.popen.kill()
             self.popen.wait()
-            raise AssertionError(f"{self.popen.args} ignored SIGTERM for {timeout} s") from None
+            raise AssertionError(
+                f"{self.popen.args} ignored SIGTERM for {timeout} s; stacks:\n"
+                f"{self.output()[-6000:]}"
+            ) from None
         finally:
             self._log.close()
 

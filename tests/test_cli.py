@@ -92,9 +92,10 @@ def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_pa
         if p.poll() is None:
             p.kill()
             p.wait()
-    assert p.returncode == 0, err[-3000:]
-    assert "Traceback" not in err
     (session,) = [p for p in rec.iterdir() if p.is_dir() and p.name != "spool"]
+    logs = {f.name: f.read_text()[-4000:] for f in (session / "logs").glob("*.log")}
+    assert p.returncode == 0, (err[-3000:], logs)
+    assert "Traceback" not in err
     assert not list(session.glob("*" + ACTIVE_SUFFIX))
     assert list(session.glob("*.mcap"))
     assert (session / "metadata.yaml").exists()

@@ -352,7 +352,8 @@ def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Ri
                 arr = bytearray(good)
                 arr[-8 * 50 - 8 : -8 * 50 - 4] = (0x7FFFFFFF).to_bytes(4, "little")
                 bad = bytes(arr)
-            session.put(keys[i % 2], bad)
+            # BLOCK: this sender must deliver all 10 000 (Zenoh's default for put is DROP).
+            session.put(keys[i % 2], bad, congestion_control=zenoh.CongestionControl.BLOCK)
     finally:
         session.close()
     n_before = rig.acked()
