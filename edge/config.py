@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import difflib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import yaml
 from pydantic import (
@@ -109,8 +109,300 @@ class EnvironmentSimStream(_StreamBase):
     drift_ppm: Float = 0.0
 
 
+# --- Hardware drivers -------------------------------------------------------------------------
+# Each real driver takes an optional `sim:` block: when it is there, the same driver runs on a
+# simulated transport shipped in edge/drivers (a T8 behind a fake `ljm`, a MAX3185x behind a
+# fake SpiDev, an SHT3x or LCD behind a fake SMBus), so the demo and the system tests exercise
+# the real decoding. Without `sim:` the vendor library is imported when the driver is created.
+
+
+class SimFault(_Strict):
+    """A fault a simulation injects: active from `at_s` (seconds after the device opened) for
+    `for_s` seconds (null: for good), repeating every `every_s`; while active, each transaction
+    fails with `probability`."""
+
+    at_s: Annotated[Float, Field(ge=0)] = 0.0
+    for_s: Annotated[Float, Field(gt=0)] | None = None
+    every_s: Annotated[Float, Field(gt=0)] | None = None
+    probability: Annotated[Float, Field(gt=0, le=1)] = 1.0
+
+    @model_validator(mode="after")
+    def _fits_its_period(self) -> SimFault:
+        if self.every_s is not None and (self.for_s is None or self.for_s >= self.every_s):
+            raise ValueError("a repeating fault needs for_s shorter than every_s")
+        return self
+
+
+T8_RANGES = (11.0, 9.6, 4.8, 2.4, 1.2, 0.6, 0.3, 0.15, 0.075, 0.036, 0.018)
+"""The T8's AIN#_RANGE values (± volts), T-Series datasheet 14.3.2 / A-3-3-3."""
+T8_MAX_SAMPLE_RATE = 400_000
+"""T8 stream: samples per second over the whole scan list (datasheet 14.3.2, A-1)."""
+
+
+def _t8_range(value: float) -> float:
+    if value not in T8_RANGES:
+        raise ValueError(
+            f"not a T8 range: {value:g} (one of {', '.join(f'{r:g}' for r in T8_RANGES)})"
+        )
+    return value
+
+
+def _identifier(value: Any) -> Any:
+    # A serial number written as a bare number in YAML is still an identifier.
+    return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+class T8Channel(Channel):
+    """A T8 analog input in a stream."""
+
+    ain: Annotated[Int, Field(ge=0, le=7)] | None = None
+    """AIN number; default: the channel's position in the list."""
+    range: Annotated[Float, AfterValidator(_t8_range)] = 11.0
+    """AIN#_RANGE in ± volts."""
+
+
+class T8Fault(SimFault):
+    kind: Literal["skipped_scans", "unplug", "stream_error"]
+    scans: Annotated[Int, Field(ge=1, le=1_000_000)] = 10
+    """skipped_scans: how many consecutive scans the device skips each time."""
+
+
+class LabJackT8Sim(_Strict):
+    """A simulated T8 (edge/drivers/sim_ljm.py): wave-like signals, a drifting CORE_TIMER."""
+
+    drift_ppm: Float = 40.0
+    """The T8's crystal against the host clock (positive: the device runs fast)."""
+    wave_period_s: Annotated[Float, Field(gt=0)] = 8.0
+    noise_v: Annotated[Float, Field(ge=0)] = 0.002
+    read_latency_ms: Annotated[Float, Field(ge=0, le=1000)] = 2.0
+    """Each eStreamRead returns up to this much after its last scan (uniformly random)."""
+    core_timer_start: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] | None = None
+    """CORE_TIMER at power-up; default random (it wraps every ~43 s at 100 MHz anyway)."""
+    seed: Int | None = None
+    faults: list[T8Fault] = []
+
+
+class _T8Connection(_Strict):
+    connection: Literal["ANY", "USB", "ETHERNET", "TCP"] = "ANY"
+    """How LJM reaches the T8 (openS connectionType)."""
+    identifier: Annotated[str, BeforeValidator(_identifier), Field(min_length=1)] = "ANY"
+    """Serial number, IP address or device name (openS identifier); ANY = the first found."""
+
+
+class LabJackT8Stream(_StreamBase, _T8Connection):
+    """LabJack T8 stream mode: AIN0-7 sampled simultaneously, timed by the T8's CORE_TIMER."""
+
+    driver: Literal["labjack_t8"]
+    rate_hz: Annotated[Float, Field(gt=0, le=40_000)]
+    channels: Annotated[list[T8Channel], Field(min_length=1, max_length=8)]  # type: ignore[assignment]
+    resolution_index: Annotated[Int, Field(ge=0, le=16)] = 0
+    """STREAM_RESOLUTION_INDEX (0 = the device default); higher is quieter and slower."""
+    settling_us: Annotated[Float, Field(ge=0, le=50_000)] = 0.0
+    """STREAM_SETTLING_US (0 = automatic)."""
+    buffer_bytes: Annotated[Int, Field(ge=1024, le=32768)] = 32768
+    """STREAM_BUFFER_SIZE_BYTES: the device-side stream buffer, at its maximum by default."""
+    sim: LabJackT8Sim | None = None
+
+    @model_validator(mode="after")
+    def _inputs_and_rate(self) -> LabJackT8Stream:
+        ains = [ch.ain if ch.ain is not None else i for i, ch in enumerate(self.channels)]
+        if len(set(ains)) != len(ains):
+            raise ValueError(f"two channels read the same AIN ({ains})")
+        if self.buffer_bytes & (self.buffer_bytes - 1):
+            raise ValueError(f"buffer_bytes must be a power of two (got {self.buffer_bytes})")
+        addresses = len(self.channels) + 2  # + CORE_TIMER and STREAM_DATA_CAPTURE_16
+        if addresses * self.rate_hz > T8_MAX_SAMPLE_RATE:
+            raise ValueError(
+                f"{addresses} addresses x {self.rate_hz:g} Hz exceeds the T8's "
+                f"{T8_MAX_SAMPLE_RATE} samples/s"
+            )
+        return self
+
+    @property
+    def ains(self) -> list[int]:
+        return [ch.ain if ch.ain is not None else i for i, ch in enumerate(self.channels)]
+
+
+T8_POLL_REGISTER = r"^(AIN[0-7]|FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9])|DAC[01])$"
+
+
+class T8PollChannel(Channel):
+    """A register the T8 is polled for: an AIN (volts), a digital line (0/1) or a DAC readback."""
+
+    source: Annotated[str, Field(pattern=T8_POLL_REGISTER)]
+    """The T8 register read: AIN0-7, FIO0-7, EIO0-7, CIO0-3, DIO0-19 or DAC0-1."""
+    range: Annotated[Float, AfterValidator(_t8_range)] = 11.0
+    """AIN#_RANGE for an AIN source."""
+
+
+class LabJackT8PollStream(_StreamBase, _T8Connection):
+    """Slow command-response reads of a T8 (AIN, DIO states), stamped by its CORE_TIMER."""
+
+    driver: Literal["labjack_t8_poll"]
+    rate_hz: Annotated[Float, Field(gt=0, le=100)]
+    channels: Annotated[list[T8PollChannel], Field(min_length=1, max_length=32)]  # type: ignore[assignment]
+    resolution_index: Annotated[Int, Field(ge=0, le=16)] = 0
+    """AIN#_RESOLUTION_INDEX for every polled AIN."""
+    sim: LabJackT8Sim | None = None
+
+
+class TcFault(SimFault):
+    kind: Literal["open_circuit", "short_gnd", "short_vcc", "no_response"]
+
+
+class _WeldThermalModel(_Strict):
+    """A simulated thermocouple on a weld cell: heats during each layer, cools between layers."""
+
+    ambient_c: Float = 25.0
+    peak_c: Float = 450.0
+    layer_s: Annotated[Float, Field(gt=0)] = 20.0
+    cool_s: Annotated[Float, Field(gt=0)] = 15.0
+    noise_c: Annotated[Float, Field(ge=0)] = 0.3
+    seed: Int | None = None
+
+
+class ThermocoupleSim(_WeldThermalModel):
+    faults: list[TcFault] = []
+
+
+class _SpiDevice(_Strict):
+    bus: Annotated[Int, Field(ge=0, le=15)] = 0
+    """/dev/spidev<bus>.<device>."""
+    device: Annotated[Int, Field(ge=0, le=15)] = 0
+    """Chip select (CE0 = 0, CE1 = 1)."""
+    max_speed_hz: Annotated[Int, Field(ge=10_000, le=5_000_000)] = 1_000_000
+    """SCK; the MAX3185x allow up to 5 MHz."""
+
+
+class Max31855Stream(_StreamBase, _SpiDevice):
+    """MAX31855 on SPI: channel 0 the thermocouple, channel 1 (optional) the cold junction."""
+
+    driver: Literal["max31855"]
+    rate_hz: Annotated[Float, Field(gt=0, le=10)]
+    """At most 10 Hz: a conversion takes up to 100 ms (datasheet, tCONV)."""
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    sim: ThermocoupleSim | None = None
+
+
+class Tc56Fault(SimFault):
+    kind: Literal["open_circuit", "tc_range", "cj_range", "overvoltage", "no_response"]
+
+
+class Max31856Sim(_WeldThermalModel):
+    faults: list[Tc56Fault] = []
+
+
+MAX31856_TYPES = ("B", "E", "J", "K", "N", "R", "S", "T")
+
+
+class Max31856Stream(_StreamBase, _SpiDevice):
+    """MAX31856 on SPI: thermocouple type, averaging, filter and conversion mode configured."""
+
+    driver: Literal["max31856"]
+    rate_hz: Annotated[Float, Field(gt=0, le=12)]
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    thermocouple: Literal["B", "E", "J", "K", "N", "R", "S", "T"] = "K"
+    averaging: Literal[1, 2, 4, 8, 16] = 1
+    mains_hz: Literal[50, 60] = 50
+    """The notch of the input filter: the local mains frequency."""
+    conversion: Literal["continuous", "one_shot"] = "continuous"
+    sim: Max31856Sim | None = None
+
+    @property
+    def conversion_s(self) -> float:
+        """Longest conversion time (datasheet, Electrical Characteristics: tCONV)."""
+        first = {("continuous", 60): 0.090, ("continuous", 50): 0.100}.get(
+            (self.conversion, self.mains_hz), 0.155 if self.mains_hz == 60 else 0.185
+        )
+        return first + (self.averaging - 1) * (0.03333 if self.mains_hz == 60 else 0.040)
+
+    @model_validator(mode="after")
+    def _rate_within_conversion_time(self) -> Max31856Stream:
+        limit = 1.0 / self.conversion_s
+        if self.rate_hz > limit:
+            raise ValueError(
+                f"rate_hz {self.rate_hz:g} is faster than a {self.conversion} conversion with "
+                f"averaging {self.averaging} at {self.mains_hz} Hz allows ({limit:.2f} Hz)"
+            )
+        return self
+
+
+class I2cFault(SimFault):
+    kind: Literal["nack", "crc_error"]
+
+
+class Sht3xSim(_Strict):
+    """A simulated SHT3x on a pier: temperature and humidity wander slowly."""
+
+    temperature_c: Float = 14.0
+    humidity_pct: Annotated[Float, Field(ge=0, le=100)] = 78.0
+    seed: Int | None = None
+    faults: list[I2cFault] = []
+
+
+class Sht3xStream(_StreamBase):
+    """Sensirion SHT3x on I2C: channel 0 temperature (°C), channel 1 (optional) humidity (%RH)."""
+
+    driver: Literal["sht3x"]
+    rate_hz: Annotated[Float, Field(gt=0, le=10)]
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    bus: Annotated[Int, Field(ge=0, le=255)] = 1
+    """/dev/i2c-<bus>."""
+    address: Literal[0x44, 0x45] = 0x44
+    """0x44 with ADDR to GND, 0x45 with ADDR to VDD."""
+    repeatability: Literal["high", "medium", "low"] = "high"
+    retries: Annotated[Int, Field(ge=0, le=10)] = 3
+    """Extra attempts after a NACK or a CRC mismatch before the sample is marked invalid."""
+    sim: Sht3xSim | None = None
+
+
+class LcdSim(_Strict):
+    """A simulated HD44780 + PCF8574 (edge/drivers/sim_smbus.py)."""
+
+    faults: list[I2cFault] = []
+
+
+class LcdDisplay(_Strict):
+    """An HD44780 character LCD behind a PCF8574 I2C backpack, showing live values.
+
+    Each line is text with placeholders ``{stream.channel}`` or ``{stream.channel:.1f}`` (a
+    Python format spec) naming a stream of this node and one of its channels."""
+
+    driver: Literal["hd44780_pcf8574"] = "hd44780_pcf8574"
+    bus: Annotated[Int, Field(ge=0, le=255)] = 1
+    address: Annotated[Int, Field(ge=0x20, le=0x3F)] = 0x27
+    """PCF8574: 0x20-0x27, PCF8574A: 0x38-0x3F (0x27 and 0x3F are the usual backpacks)."""
+    cols: Literal[8, 16, 20] = 16
+    rows: Literal[1, 2, 4] = 2
+    refresh_hz: Annotated[Float, Field(gt=0, le=10)] = 2.0
+    backlight: bool = True
+    lines: Annotated[list[str], Field(min_length=1, max_length=4)]
+    retries: Annotated[Int, Field(ge=0, le=10)] = 3
+    sim: LcdSim | None = None
+
+    @model_validator(mode="after")
+    def _lines_fit(self) -> LcdDisplay:
+        from edge.display import parse_line
+
+        if len(self.lines) > self.rows:
+            raise ValueError(f"{len(self.lines)} lines for a display of {self.rows} row(s)")
+        for i, line in enumerate(self.lines):
+            try:
+                parse_line(line)
+            except ValueError as err:
+                raise ValueError(f"lines[{i}]: {err}") from None
+        return self
+
+
 StreamConfig = Annotated[
-    WaveSimStream | ThermocoupleSimStream | EnvironmentSimStream,
+    WaveSimStream
+    | ThermocoupleSimStream
+    | EnvironmentSimStream
+    | LabJackT8Stream
+    | LabJackT8PollStream
+    | Max31855Stream
+    | Max31856Stream
+    | Sht3xStream,
     Field(discriminator="driver"),
 ]
 
@@ -118,6 +410,11 @@ _STREAM_BY_DRIVER: dict[str, type[_StreamBase]] = {
     "wave_sim": WaveSimStream,
     "thermocouple_sim": ThermocoupleSimStream,
     "environment_sim": EnvironmentSimStream,
+    "labjack_t8": LabJackT8Stream,
+    "labjack_t8_poll": LabJackT8PollStream,
+    "max31855": Max31855Stream,
+    "max31856": Max31856Stream,
+    "sht3x": Sht3xStream,
 }
 DRIVERS = tuple(_STREAM_BY_DRIVER)
 """The `driver:` values the schema accepts (the union tags of StreamConfig)."""
@@ -151,13 +448,72 @@ class SpoolConfig(_Strict):
     """Replay rate limit, so live data keeps flowing while a backlog drains."""
 
 
+class ClockConfig(_Strict):
+    """Where the node's time quality comes from, and the thresholds it is graded with.
+
+    Offsets are integer ns; unset offset limits default by `timestamping` (software: warn
+    250 µs / fail 1 ms, as Meta's ptpcheck; hardware: 10 µs / 100 µs)."""
+
+    source: Literal["ptp4l", "chrony", "none"] = "none"
+    uds: str = "/var/run/ptp4l"
+    """ptp4l's management socket (its `uds_address`)."""
+    domain: Annotated[Int, Field(ge=0, le=255)] = 0
+    interface: str | None = None
+    """The PTP interface; default: the one ptp4l reports for its first port."""
+    timestamping: Literal["software", "hardware"] = "software"
+    offset_warn_ns: Annotated[Int, Field(gt=0)] | None = None
+    offset_fail_ns: Annotated[Int, Field(gt=0)] | None = None
+    last_sync_warn_s: Annotated[Float, Field(gt=0)] = 1.0
+    last_sync_fail_s: Annotated[Float, Field(gt=0)] = 5.0
+    holdover_s: Annotated[Float, Field(ge=0)] = 5.0
+    """After losing lock, HOLDOVER this long after the last sync, then FREERUN."""
+    poll_s: Annotated[Float, Field(ge=0.1, le=10)] = 0.5
+    ignore_checks: list[str] = []
+    """Checks reported but left out of the level (e.g. kernel_sync where nothing may set it)."""
+
+    @model_validator(mode="after")
+    def _warn_below_fail(self) -> ClockConfig:
+        warn, fail = self.offset_warn_ns, self.offset_fail_ns
+        if warn is not None and fail is not None and warn > fail:
+            raise ValueError(f"offset_warn_ns ({warn}) is above offset_fail_ns ({fail})")
+        if self.last_sync_warn_s > self.last_sync_fail_s:
+            raise ValueError(
+                f"last_sync_warn_s ({self.last_sync_warn_s:g}) is above "
+                f"last_sync_fail_s ({self.last_sync_fail_s:g})"
+            )
+        return self
+
+
 class NodeConfig(_Strict):
     """One edge machine."""
 
     connect: list[str] | None = None
     """Zenoh endpoints of the hub's router; default: the hub's listen endpoints."""
     spool: SpoolConfig = SpoolConfig()
+    clock: ClockConfig = ClockConfig()
     streams: Annotated[dict[StreamName, StreamConfig], Field(min_length=1)]
+    displays: dict[StreamName, LcdDisplay] = {}
+    """Character displays on this node showing its live values (edge/display.py)."""
+
+    @model_validator(mode="after")
+    def _displays_show_known_channels(self) -> NodeConfig:
+        from edge.display import parse_line
+
+        for name, display in self.displays.items():
+            for i, line in enumerate(display.lines):
+                for stream, channel in parse_line(line).references:
+                    cfg = self.streams.get(stream)
+                    if cfg is None:
+                        raise ValueError(
+                            f"displays.{name}.lines[{i}]: no stream {stream!r} on this node"
+                            f" (streams: {', '.join(self.streams)})"
+                        )
+                    if channel not in [ch.name for ch in cfg.channels]:
+                        raise ValueError(
+                            f"displays.{name}.lines[{i}]: stream {stream!r} has no channel"
+                            f" {channel!r}"
+                        )
+        return self
 
 
 class RecorderConfig(_Strict):
@@ -300,13 +656,36 @@ def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
     model: type[BaseModel] | None = fixed.get(loc)
     if len(loc) == 2 and loc[0] == "nodes":
         model = NodeConfig
+    elif len(loc) == 3 and loc[0] == "nodes" and loc[2] == "clock":
+        model = ClockConfig
     elif len(loc) >= 5 and loc[0] == "nodes" and loc[2] == "streams":
-        stream = _STREAM_BY_DRIVER.get(str(loc[4]))
-        if len(loc) == 5:
-            model = stream
-        elif len(loc) == 7 and loc[5] == "channels" and stream is not None:
-            model = Channel
+        model = _walk(_STREAM_BY_DRIVER.get(str(loc[4])), loc[5:])
+    elif len(loc) >= 4 and loc[0] == "nodes" and loc[2] == "displays":
+        model = _walk(LcdDisplay, loc[4:])
     return model
+
+
+def _walk(model: type[BaseModel] | None, path: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The model found by following field names (list indices skipped) down from `model`."""
+    for key in path:
+        if model is None:
+            return None
+        if isinstance(key, int):
+            continue
+        field = model.model_fields.get(key)
+        model = _model_in(field.annotation) if field is not None else None
+    return model
+
+
+def _model_in(annotation: Any) -> type[BaseModel] | None:
+    """The first model class inside an annotation (`X | None`, `list[X]`, `Annotated[...]`)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in get_args(annotation):
+        found = _model_in(arg)
+        if found is not None:
+            return found
+    return None
 
 
 def _short(value: object) -> str:

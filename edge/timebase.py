@@ -1,81 +1,229 @@
-"""Batch timing: a continuous fit of scan index to host time (CLOCK_REALTIME, PTP-disciplined).
+"""Batch timing: a continuous fit of device time to host time (CLOCK_REALTIME, PTP-disciplined).
 
-A batch's first-sample time comes from the fit, not from the moment a read returned: each read
-gives one (scan index, host time) pair, and host time = t0 + index * period is fitted over a
-sliding window. The period (slope) is a least-squares fit, so it follows the device's real rate
-(drift) instead of the nominal one. A read can only return *after* its last scan was sampled,
-never before, so the line is then lowered onto the earliest observation (the lower envelope):
-the fit sits on the fastest reads, not on the mean latency, and a batch is never stamped later
-than it was read.
+A batch's first-sample time comes from the fit, not from the moment a read returned. Each read
+gives one pair: the device time of its last scan (the T8's CORE_TIMER, unwrapped; or, for a
+device without a clock, the scan index at the nominal rate) and the host time right after the
+read returned. Host time is fitted as ``host = offset + slope * device`` by the lower convex
+hull of those pairs:
+
+- A read only ever returns *after* its last scan was sampled, never before, so every pair lies
+  on or above the true line: the fit is the line under every pair that touches the hull at the
+  mean device time. Among lines no pair lies below, that one minimises the summed latency (a
+  linear programme whose optimum is a hull edge): it rests on the fastest reads instead of
+  averaging the slow ones in, and a batch is never stamped later than it was read.
+- The slope (the device clock's drift against the host) comes from the same edge, so it follows
+  the device's real rate; the horizon is long (300 s by default), because the error at the
+  newest batch is the slope error times half the horizon plus the offset error, and the offset
+  error shrinks like (largest latency) / (number of reads). Older pairs are decimated into
+  buckets that keep only their lowest pair (the only one the hull can use), so the per-read cost
+  stays a few dozen Python operations whatever the read rate: no per-sample work at all.
+- Scan index maps to device time exactly (the device's scan clock and its timer share one
+  crystal): ``device = device0 + (index - index0) * device_period``, with the device period
+  measured from the device clock itself. A reopened stream (index back to 0) starts a new
+  mapping; the device-to-host fit survives it when the device clock ran on (a stream restart)
+  and is rebuilt when it did not (a power-cycled device) or when the host clock stepped.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 
-import numpy as np
+_MAX_SLOPE_ERROR = 0.01
+"""A fitted slope more than 1 % from nominal is a stall or a clock step, not drift."""
+
+
+@dataclass(slots=True)
+class _Pair:
+    x: float
+    """Device time, ns, relative to the fit's origin."""
+    y: float
+    """Host time, ns, relative to the fit's origin."""
 
 
 class ScanClock:
-    """Fits host time (int ns) against cumulative scan index for one stream."""
+    """Fits host time (int ns) against device time for one stream and stamps scans from it.
 
-    def __init__(self, nominal_rate_hz: float, window: int = 256) -> None:
+    Args:
+        nominal_rate_hz: the configured scan rate (the device period until it is measured).
+        horizon_s: how far back reads take part in the fit.
+        buckets: how many decimation buckets cover the horizon.
+        step_back_ns: a read this far *below* the fitted line means the host (or device) clock
+            stepped back: the fit restarts from it.
+        step_ahead_ns, step_ahead_reads: that many consecutive reads each more than
+            `step_ahead_ns` above the line mean a forward step: the fit restarts. (A reader that
+            merely falls behind also reads late, so the bar is high.)
+    """
+
+    def __init__(
+        self,
+        nominal_rate_hz: float,
+        horizon_s: float = 300.0,
+        buckets: int = 256,
+        step_back_ns: int = 10_000_000,
+        step_ahead_ns: int = 1_000_000_000,
+        step_ahead_reads: int = 20,
+    ) -> None:
+        if nominal_rate_hz <= 0 or horizon_s <= 0 or buckets < 2:
+            raise ValueError("rate and horizon must be positive, buckets at least 2")
         self.nominal_period_ns = 1e9 / nominal_rate_hz
-        self._pairs: deque[tuple[int, int]] = deque(maxlen=window)
-        self._ref: tuple[int, int] | None = None
-        self._t0 = 0.0  # fitted host time of scan `_ref[0]`, relative to `_ref[1]`
-        self._period = self.nominal_period_ns
+        self._horizon = horizon_s * 1e9
+        self._bucket = self._horizon / buckets
+        self._step_back = float(step_back_ns)
+        self._step_ahead = float(step_ahead_ns)
+        self._step_ahead_reads = step_ahead_reads
+        self.restarts = 0
+        """How often the fit started over (clock steps, power-cycled devices)."""
+        self._device_period = self.nominal_period_ns
+        self._segment: tuple[int, int] | None = None  # (index, device ns) of a segment's first read
+        self._last: tuple[int, int] | None = None  # (index, device ns) of the newest read
+        self._clear_fit()
+
+    def _clear_fit(self) -> None:
+        self._origin: tuple[int, int] | None = None  # (device ns, host ns): fit coordinates' zero
+        self._closed: deque[_Pair] = deque()  # lowest pair of each closed bucket, oldest first
+        self._closed_sum_x = 0.0
+        self._hull: list[_Pair] = []  # lower convex hull of _closed
+        self._open: _Pair | None = None  # lowest pair of the bucket being filled
+        self._open_bucket = -1
+        self._slope = 1.0
+        self._offset = 0.0
+        self._ahead_run = 0
+
+    # -- observations --------------------------------------------------------------------------
 
     def observe(self, last_index: int, host_ns: int, device_ns: int | None = None) -> None:
         """Record that scan `last_index` (the last of a block) was acquired by `host_ns`.
 
-        `device_ns` is the device clock's time of that scan when the device has one.
+        `device_ns` is the device clock's time of that scan (ns, unwrapped) when the device has
+        a clock; without one the scan index at the nominal rate stands in for it.
         """
-        if self._ref is None:
-            self._ref = (last_index, host_ns)
-        self._pairs.append((last_index, host_ns))
-        ref_i, ref_t = self._ref
-        arr = np.asarray(self._pairs, dtype=np.int64)
-        x = (arr[:, 0] - ref_i).astype(np.float64)
-        y = (arr[:, 1] - ref_t).astype(np.float64)
-        slope = _hull_slope(x, y) if len(x) >= 3 else None
-        # A slope far from nominal means a stall or a clock step, not drift: keep the last one.
-        if slope is not None and abs(slope / self.nominal_period_ns - 1.0) < 0.01:
-            self._period = slope
-        self._t0 = float((y - self._period * x).min())
+        if device_ns is None:
+            if self._last is not None and last_index <= self._last[0]:
+                self._restart()  # reopened: no device clock says how the two runs relate
+            device_ns = round(last_index * self.nominal_period_ns)
+        else:
+            device_ns = self._map_segment(last_index, host_ns, device_ns)
+        self._last = (last_index, device_ns)
+        self._add(device_ns, host_ns)
+
+    def _map_segment(self, index: int, host_ns: int, device_ns: int) -> int:
+        """Track index -> device time; decide whether a reopen keeps the fit."""
+        last = self._last
+        if last is None or self._segment is None:
+            self._segment = (index, device_ns)
+            return device_ns
+        if index <= last[0] or device_ns <= last[1]:
+            # A new stream (index restarted) or a device clock that went back (power cycle).
+            if device_ns <= last[1] or not self._explains(device_ns, host_ns):
+                self._restart()
+            self._segment = (index, device_ns)
+            return device_ns
+        index0, device0 = self._segment
+        if index > index0:
+            period = (device_ns - device0) / (index - index0)
+            if abs(period / self.nominal_period_ns - 1.0) < _MAX_SLOPE_ERROR:
+                self._device_period = period
+        return device_ns
+
+    def _explains(self, device_ns: int, host_ns: int) -> bool:
+        """Does the current fit place this pair plausibly (latency >= 0, not a step)?"""
+        if self._origin is None:
+            return False
+        r = self._residual(device_ns - self._origin[0], host_ns - self._origin[1])
+        return -self._step_back < r < self._step_ahead
+
+    def _restart(self) -> None:
+        if self._origin is not None:
+            self.restarts += 1
+        self._clear_fit()
+        self._segment = None
+
+    def _residual(self, x: float, y: float) -> float:
+        return y - (self._offset + self._slope * x)
+
+    def _add(self, device_ns: int, host_ns: int) -> None:
+        if self._origin is None:
+            self._origin = (device_ns, host_ns)
+        x = float(device_ns - self._origin[0])
+        y = float(host_ns - self._origin[1])
+        if self._open is not None:
+            r = self._residual(x, y)
+            self._ahead_run = self._ahead_run + 1 if r > self._step_ahead else 0
+            if r < -self._step_back or self._ahead_run >= self._step_ahead_reads:
+                self._restart()
+                self._segment = self._last
+                self._add(device_ns, host_ns)
+                return
+        pair = _Pair(x, y)
+        bucket = int(x // self._bucket)
+        if self._open is None or bucket != self._open_bucket:
+            if self._open is not None:
+                self._close_bucket(self._open, x)
+            self._open, self._open_bucket = pair, bucket
+        elif y - self._slope * x < self._open.y - self._slope * self._open.x:
+            self._open = pair
+        self._fit()
+
+    def _close_bucket(self, pair: _Pair, now_x: float) -> None:
+        self._closed.append(pair)
+        self._closed_sum_x += pair.x
+        while self._closed and self._closed[0].x < now_x - self._horizon:
+            self._closed_sum_x -= self._closed.popleft().x
+        self._hull = _lower_hull(self._closed)
+
+    def _fit(self) -> None:
+        assert self._open is not None
+        hull = _extend_hull(self._hull, self._open)
+        mean_x = (self._closed_sum_x + self._open.x) / (len(self._closed) + 1)
+        if len(hull) >= 2:
+            k = 1
+            while k < len(hull) - 1 and hull[k].x < mean_x:
+                k += 1
+            a, b = hull[k - 1], hull[k]
+            slope = (b.y - a.y) / (b.x - a.x)
+            if abs(slope - 1.0) < _MAX_SLOPE_ERROR:
+                self._slope = slope
+        self._offset = min(p.y - self._slope * p.x for p in hull)
+
+    # -- stamps --------------------------------------------------------------------------------
 
     def time_of(self, index: int) -> int:
         """Fitted host time (ns) at which scan `index` was sampled."""
-        if self._ref is None:
+        if self._origin is None or self._last is None:
             raise RuntimeError("no observation yet")
-        ref_i, ref_t = self._ref
-        return ref_t + round(self._t0 + (index - ref_i) * self._period)
+        last_index, last_device = self._last
+        x = last_device - self._origin[0] + (index - last_index) * self._device_period
+        return self._origin[1] + round(self._offset + self._slope * x)
 
     @property
     def period_ns(self) -> float:
-        return self._period
+        """Fitted scan period in host ns."""
+        return self._slope * self._device_period
+
+    @property
+    def drift_ppm(self) -> float:
+        """How much faster (+) the device clock runs than the host, as fitted."""
+        return (1.0 / self._slope - 1.0) * 1e6
 
 
-def _hull_slope(x: np.ndarray, y: np.ndarray) -> float | None:
-    """Slope of the line under every point that touches the lower convex hull at mean(x).
+def _cross(o: _Pair, a: _Pair, b: _Pair) -> float:
+    return (a.x - o.x) * (b.y - o.y) - (a.y - o.y) * (b.x - o.x)
 
-    Among lines that no observation lies below, it minimises the summed latency (a linear
-    programme whose optimum is a hull edge), so it rests on the fastest reads instead of
-    averaging the slow ones in. x must be increasing. Returns None when x has no spread.
-    """
-    hull: list[int] = []
-    for i in range(len(x)):  # Andrew's monotone chain, lower half
-        while len(hull) >= 2:
-            a, b = hull[-2], hull[-1]
-            if (x[b] - x[a]) * (y[i] - y[a]) - (y[b] - y[a]) * (x[i] - x[a]) > 0:
-                break
+
+def _lower_hull(points: deque[_Pair]) -> list[_Pair]:
+    """Andrew's monotone chain, lower half; `points` sorted by x."""
+    hull: list[_Pair] = []
+    for p in points:
+        while len(hull) >= 2 and _cross(hull[-2], hull[-1], p) <= 0:
             hull.pop()
-        hull.append(i)
-    if len(hull) < 2:
-        return None
-    xm = float(x.mean())
-    hx = x[hull]
-    k = int(np.searchsorted(hx, xm))
-    k = min(max(k, 1), len(hull) - 1)
-    a, b = hull[k - 1], hull[k]
-    return float((y[b] - y[a]) / (x[b] - x[a]))
+        hull.append(p)
+    return hull
+
+
+def _extend_hull(hull: list[_Pair], p: _Pair) -> list[_Pair]:
+    """The lower hull of `hull`'s points plus `p` (to the right of all of them), as a new list."""
+    n = len(hull)
+    while n >= 2 and _cross(hull[n - 2], hull[n - 1], p) <= 0:
+        n -= 1
+    return [*hull[:n], p]

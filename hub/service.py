@@ -106,6 +106,13 @@ class Hub:
         if self.site.hub.recorder.recover_on_start:
             self._recover_crashed_files()
         self.nodes = NodeWatch(self.session, self.site.site)
+        from hub.fleet import FleetTime
+
+        # The fleet's time: node health and the nodes' own clock events feed it.
+        self.fleet = FleetTime(self.recorder.emit)
+        self.nodes.health_listeners.append(self.fleet.update)
+        self.nodes.alive_listeners.append(self.fleet.on_alive)
+        self.recorder.events.listeners.append(self.fleet.on_event)
         self._heartbeat_pub = self.session.declare_publisher(hub_key(self.site.site, "heartbeat"))
         self._heartbeat = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._heartbeat.start()

@@ -58,7 +58,7 @@ BAD: dict[str, tuple[str, str]] = {
         "nodes.wec.streams.t8.channels",
         "duplicate channel name 'heave'",
     ),
-    "bad_unknown_driver.yaml": ("nodes.wec.streams.t8", "unknown driver 'labjack_t8'"),
+    "bad_unknown_driver.yaml": ("nodes.wec.streams.t8", "unknown driver 'labjack_u3'"),
     "bad_missing_driver.yaml": ("nodes.wec.streams.t8", "missing 'driver'"),
     "bad_node_name_upper_case.yaml": ("nodes.WEC", "invalid node name 'WEC'"),
     "bad_node_name_spaces.yaml": ("nodes.wave rig", "invalid node name 'wave rig'"),

@@ -70,7 +70,15 @@ REGISTRY: dict[str, str] = {
     "wave_sim": "edge.drivers.wave_sim:WaveSim",
     "thermocouple_sim": "edge.drivers.thermocouple_sim:ThermocoupleSim",
     "environment_sim": "edge.drivers.environment_sim:EnvironmentSim",
+    "labjack_t8": "edge.drivers.labjack_t8:LabJackT8",
+    "labjack_t8_poll": "edge.drivers.labjack_t8:LabJackT8Poll",
+    "max31855": "edge.drivers.max31855:Max31855",
+    "max31856": "edge.drivers.max31856:Max31856",
+    "sht3x": "edge.drivers.sht3x:Sht3x",
 }
+"""Driver name -> "module:Class". A real driver with a `sim:` block runs on the simulated
+transport shipped beside it (sim_ljm, sim_spi, sim_smbus); without one, the class imports its
+vendor library (labjack-ljm, spidev, smbus2) when it is constructed, never before."""
 
 
 def create_driver(cfg: StreamConfig) -> Driver:

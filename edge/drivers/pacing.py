@@ -1,9 +1,11 @@
-"""Real-time pacing for sims: a device clock that runs at the configured rate, with drift."""
+"""Pacing: real-time sims' device clocks (with drift), polled devices' schedules, and the
+injectable clocks that let drivers and simulated transports run in virtual time."""
 
 from __future__ import annotations
 
 import threading
 import time
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -73,3 +75,108 @@ class PacedSim:
 
     def close(self) -> None:
         self.pacer.stop()
+
+
+# --- Clocks for drivers and simulated transports ---------------------------------------------
+
+
+class Clock(Protocol):
+    """Host time for a driver and its (simulated) transport.
+
+    Real drivers use `SYSTEM_CLOCK`; unit tests and the timing bench hand the driver and its
+    simulated transport the same `VirtualClock`, so hours of device time run in seconds.
+    """
+
+    def time_ns(self) -> int:
+        """CLOCK_REALTIME, ns (what samples are stamped with)."""
+        ...
+
+    def monotonic_ns(self) -> int:
+        """A clock that never steps, ns (what reads are paced with)."""
+        ...
+
+    def sleep_until(self, monotonic_ns: int, cancel: threading.Event) -> bool:
+        """Wait until `monotonic_ns`; False (at once) if `cancel` is or becomes set."""
+        ...
+
+
+class SystemClock:
+    """The host's clocks; waits are interruptible through `cancel`."""
+
+    def time_ns(self) -> int:
+        return time.time_ns()
+
+    def monotonic_ns(self) -> int:
+        return time.monotonic_ns()
+
+    def sleep_until(self, monotonic_ns: int, cancel: threading.Event) -> bool:
+        delay = (monotonic_ns - time.monotonic_ns()) / 1e9
+        if delay > 0:
+            return not cancel.wait(delay)
+        return not cancel.is_set()
+
+
+SYSTEM_CLOCK = SystemClock()
+
+
+class VirtualClock:
+    """Simulated time: `sleep_until` jumps there at once. Both clocks advance together."""
+
+    def __init__(self, start_ns: int = 1_795_000_000_000_000_000) -> None:
+        self._realtime0 = start_ns
+        self._now = 0
+        self._lock = threading.Lock()
+
+    def time_ns(self) -> int:
+        return self._realtime0 + self._now
+
+    def monotonic_ns(self) -> int:
+        return self._now
+
+    def sleep_until(self, monotonic_ns: int, cancel: threading.Event) -> bool:
+        if cancel.is_set():
+            return False
+        with self._lock:
+            self._now = max(self._now, monotonic_ns)
+        return True
+
+    def advance(self, ns: int) -> None:
+        with self._lock:
+            self._now += ns
+
+
+class PollPacer:
+    """When each poll of a polled device (no device clock) is due, at a fixed rate.
+
+    Polls are due at ``start + k / rate`` on the monotonic clock. A poll that could not happen
+    on time (the bus was slow, the host stalled) is not made up in a burst: `next_poll` says how
+    many polls were missed, so the driver can hand them on as invalid samples and scan index
+    keeps meaning time.
+    """
+
+    def __init__(self, rate_hz: float, clock: Clock) -> None:
+        self.period_ns = 1e9 / rate_hz
+        self.clock = clock
+        self._start = 0
+        self._k = 0
+        self.missed = 0
+
+    def start(self) -> None:
+        self._start = self.clock.monotonic_ns()
+        self._k = 0
+
+    def next_poll(self, cancel: threading.Event) -> int | None:
+        """Wait for the next due poll; return how many polls were missed before it (None if
+        cancelled)."""
+        due = self._start + round(self._k * self.period_ns)
+        missed = 0
+        late = self.clock.monotonic_ns() - due
+        if late >= self.period_ns:
+            missed = int(late // self.period_ns)
+            self._k += missed
+            due = self._start + round(self._k * self.period_ns)
+        if not self.clock.sleep_until(due, cancel):
+            return None
+        self._k += 1
+        self.missed += missed
+        return missed

@@ -3,6 +3,7 @@
 Each channel is a sum of a swell and a wind-sea component with its own amplitude and phase,
 plus Gaussian noise. Noise comes from a pre-drawn table sliced at random offsets, so a
 320 kS/s stream costs a few numpy slices per batch instead of fresh random draws.
+`WaveModel` is the signal alone: the simulated T8 (`sim_ljm`) plays it on its AIN channels.
 """
 
 from __future__ import annotations
@@ -16,26 +17,42 @@ from edge.drivers.pacing import PacedSim
 _NOISE_TABLE = 1 << 20
 
 
-class WaveSim(PacedSim):
-    def __init__(self, cfg: WaveSimStream, seed: int | None = None) -> None:
-        self.cfg = cfg
-        super().__init__(cfg.rate_hz, cfg.batch_scans, cfg.drift_ppm)
-        rng = np.random.default_rng(seed)
-        n = len(cfg.channels)
-        self._amp = rng.uniform(0.5, 4.0, size=(2, n))
-        self._phase = rng.uniform(0, 2 * np.pi, size=(2, n))
-        self._omega = 2 * np.pi / np.array([cfg.wave_period_s, cfg.wave_period_s / 3.1])
-        self._noise = (rng.standard_normal(_NOISE_TABLE) * cfg.noise_v).astype(np.float64)
+class WaveModel:
+    """Wave-like signals on `channels` channels, in volts, at any device times."""
+
+    def __init__(
+        self, channels: int, wave_period_s: float, noise_v: float, rng: np.random.Generator
+    ) -> None:
+        self._amp = rng.uniform(0.5, 4.0, size=(2, channels))
+        self._phase = rng.uniform(0, 2 * np.pi, size=(2, channels))
+        self._omega = 2 * np.pi / np.array([wave_period_s, wave_period_s / 3.1])
+        self._noise = (rng.standard_normal(_NOISE_TABLE) * noise_v).astype(np.float64)
         self._rng = rng
 
-    def generate(self, first: int) -> npt.NDArray[np.float64]:
-        """Scans [first, first + scans) as (scans, channels) volts."""
-        t0, dt = self.pacer.seconds_of(first, self.scans)
-        t = t0 + np.arange(self.scans) * dt
+    def sample(self, t: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """(len(t), channels) volts at device times `t` (s)."""
         ph = np.multiply.outer(t, self._omega)  # (scans, 2)
         out: npt.NDArray[np.float64] = np.sin(ph[:, 0:1] + self._phase[0]) * self._amp[0]
         out += np.sin(ph[:, 1:2] + self._phase[1]) * self._amp[1]
         n = out.size
         start = int(self._rng.integers(0, _NOISE_TABLE - n)) if n < _NOISE_TABLE else 0
-        out += self._noise[start : start + n].reshape(out.shape)
+        noise = self._noise[start : start + n]
+        if noise.size < n:  # a block larger than the table: tile it
+            noise = np.resize(self._noise, n)
+        out += noise.reshape(out.shape)
         return out
+
+
+class WaveSim(PacedSim):
+    def __init__(self, cfg: WaveSimStream, seed: int | None = None) -> None:
+        self.cfg = cfg
+        super().__init__(cfg.rate_hz, cfg.batch_scans, cfg.drift_ppm)
+        self.model = WaveModel(
+            len(cfg.channels), cfg.wave_period_s, cfg.noise_v, np.random.default_rng(seed)
+        )
+
+    def generate(self, first: int) -> npt.NDArray[np.float64]:
+        """Scans [first, first + scans) as (scans, channels) volts."""
+        t0, dt = self.pacer.seconds_of(first, self.scans)
+        t: npt.NDArray[np.float64] = t0 + np.arange(self.scans, dtype=np.float64) * dt
+        return self.model.sample(t)

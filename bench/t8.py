@@ -1,0 +1,203 @@
+"""Throughput of the T8 path: 8 channels x 40 kS/s through the fake `ljm`, in real time.
+
+    python bench/t8.py [--seconds 60]
+
+A real hub (`fleetdaq hub`: Zenoh router, recorder writing MCAP, acks) runs in another OS
+process; this process runs the real `EdgeAgent` for one node whose stream is the `labjack_t8`
+driver on the simulated T8 (edge/drivers/sim_ljm.py): 8 AIN + CORE_TIMER +
+STREAM_DATA_CAPTURE_16 at 40 kS/s = 400 000 samples/s through eStreamRead (Python lists, as
+labjack-ljm returns them), 4000 scans per read. The simulated T8 produces scans on its own
+clock whether or not the agent keeps up: a slow agent shows as a growing ljmScanBacklog, then
+LJME_LJM_BUFFER_FULL (scans lost).
+
+Reported: CPU seconds per million samples of this process (every thread: driver, decoding,
+clock fit, spool, encoding, Zenoh), and the same without the simulator's own signal
+generation (which a real T8 does in hardware; measured separately and subtracted); scans
+lost (LJM buffer overflows, read errors, sequence gaps at the hub); the largest LJM backlog.
+The last line on stdout is one JSON object with the figures, the target and whether it is met.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge` package
+
+import numpy as np
+
+from edge.agent import EdgeAgent
+from edge.config import LabJackT8Stream, parse_config
+from edge.drivers.labjack_t8 import LabJackT8
+from edge.drivers.pacing import VirtualClock
+from edge.drivers.sim_ljm import SimLJM
+
+REPO = Path(__file__).resolve().parent.parent
+RATE_HZ = 40_000
+SCANS = 4_000
+CHANNELS = 8
+
+
+def site_yaml(port: int, data: Path) -> str:
+    chans = "\n".join(
+        f"          - {{name: ain{i}, unit: V, scale: 1.0, offset: 0.0}}" for i in range(CHANNELS)
+    )
+    return f"""\
+site: bench
+hub:
+  listen: [tcp/127.0.0.1:{port}]
+  data_dir: {json.dumps(str(data / "rec"))}
+  recorder: {{file_duration_s: 600}}
+nodes:
+  wec:
+    spool: {{dir: {json.dumps(str(data / "spool"))}}}
+    streams:
+      t8:
+        driver: labjack_t8
+        rate_hz: {RATE_HZ}
+        scans_per_batch: {SCANS}
+        sim: {{drift_ppm: 40, read_latency_ms: 2, seed: 1}}
+        channels:
+{chans}
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for_port(port: int, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"the hub did not listen on {port}")
+
+
+def progress(msg: str) -> None:
+    print(f"[t8] {msg}", file=sys.stderr, flush=True)
+
+
+def generation_cpu(cfg: LabJackT8Stream, reads: int) -> float:
+    """CPU seconds the simulator spends generating `reads` blocks (a real T8's hardware work)."""
+    assert cfg.sim is not None
+    ljm = SimLJM(cfg.sim, VirtualClock())
+    driver = LabJackT8(cfg, ljm=ljm, clock=ljm.clock)
+    driver.open()
+    stream = ljm.device.stream
+    assert stream is not None
+    start = time.process_time()
+    for k in range(reads):
+        ljm._scans(stream, k * SCANS, SCANS)
+    return time.process_time() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    args = parser.parse_args()
+    port = free_port()
+    with tempfile.TemporaryDirectory(prefix="fleetdaq-t8-") as tmp:
+        data = Path(tmp)
+        cfg_path = data / "site.yaml"
+        cfg_path.write_text(site_yaml(port, data))
+        site = parse_config(cfg_path.read_text(), str(cfg_path))
+        hub_log = (data / "hub.log").open("wb")
+        hub = subprocess.Popen(
+            [sys.executable, "-m", "hub.cli", "hub", "--config", str(cfg_path)],
+            cwd=REPO,
+            stdout=hub_log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+        )
+        try:
+            wait_for_port(port)
+            progress(f"hub pid {hub.pid} on port {port}; running the edge for {args.seconds:g} s")
+            agent = EdgeAgent(site, "wec")
+            agent.start()
+            loop = agent.loops[0]
+            driver = loop.driver
+            assert isinstance(driver, LabJackT8)
+            # Count from the first batch on (start-up waits for the hub's subscription).
+            deadline = time.monotonic() + 30
+            while loop.counters.batches == 0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            cpu0, wall0, scans0 = time.process_time(), time.monotonic(), loop.counters.scans
+            max_backlog = 0
+            while time.monotonic() - wall0 < args.seconds:
+                time.sleep(0.5)
+                max_backlog = max(max_backlog, driver.ljm_scan_backlog)
+            cpu = time.process_time() - cpu0
+            wall = time.monotonic() - wall0
+            scans = loop.counters.scans - scans0
+            health = driver.health()
+            read_errors = loop.counters.read_errors
+            agent_batches = loop.counters.batches
+            agent.close()
+        finally:
+            if hub.poll() is None:
+                hub.send_signal(signal.SIGTERM)
+            try:
+                hub.wait(60)
+            except subprocess.TimeoutExpired:
+                hub.kill()
+                hub.wait()
+            hub_log.close()
+        log = (data / "hub.log").read_text(errors="replace")
+    m = re.findall(r"wec/t8: (\d+) batches, (\d+) samples, (\d+) gaps", log)
+    hub_batches, hub_samples, hub_gaps = (int(x) for x in m[-1]) if m else (0, 0, -1)
+    samples = scans * CHANNELS
+    gen_cpu = generation_cpu(site.nodes["wec"].streams["t8"], round(scans / SCANS))  # type: ignore[arg-type]
+    lost = health["skipped_scans"] + max(hub_gaps, 0) * SCANS
+    if read_errors:
+        lost += read_errors * SCANS  # at least a read's worth each; the stream restarted
+    cpu_per_ms = cpu / (samples / 1e6)
+    result: dict[str, Any] = {
+        "bench": "t8",
+        "seconds": round(wall, 2),
+        "rate_hz": RATE_HZ,
+        "channels": CHANNELS,
+        "scans": scans,
+        "samples": samples,
+        "cpu_s": round(cpu, 3),
+        "cpu_share_of_one_core": round(cpu / wall, 3),
+        "cpu_s_per_msample": round(cpu_per_ms, 4),
+        "sim_generation_cpu_s": round(gen_cpu, 3),
+        "agent_cpu_s_per_msample": round((cpu - gen_cpu) / (samples / 1e6), 4),
+        "max_ljm_scan_backlog": max(max_backlog, health["max_ljm_scan_backlog"]),
+        "read_errors": read_errors,
+        "skipped_scans": health["skipped_scans"],
+        "agent_batches": agent_batches,
+        "hub_batches": hub_batches,
+        "hub_samples": hub_samples,
+        "hub_gaps": hub_gaps,
+        "lost_scans": lost,
+        "target": "0 scans lost because of the agent at 8 x 40 kS/s",
+        "met": lost == 0 and hub_gaps == 0 and scans >= 0.98 * RATE_HZ * wall,
+    }
+    print(
+        f"{scans} scans in {wall:.1f} s ({scans / wall:.0f} scans/s); CPU {cpu:.2f} s = "
+        f"{cpu_per_ms:.4f} s/Msample ({result['agent_cpu_s_per_msample']} without the "
+        f"simulator's signal generation); lost scans {lost}; max LJM backlog "
+        f"{result['max_ljm_scan_backlog']} scans; hub: {hub_batches} batches, {hub_gaps} gaps",
+        flush=True,
+    )
+    print(json.dumps(result), flush=True)
+    _ = np  # numpy is loaded by the agent anyway; imported here to fail early if missing
+
+
+if __name__ == "__main__":
+    main()

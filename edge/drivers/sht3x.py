@@ -1,0 +1,163 @@
+"""Sensirion SHT3x (SHT30/31/35) humidity and temperature sensor on I2C (smbus2).
+
+Single-shot measurements without clock stretching (datasheet 4.3, Table 9): write the
+command (0x2400 high, 0x240B medium, 0x2416 low repeatability), wait the measurement time
+(15 / 6 / 4 ms max), then read 6 bytes: T MSB, T LSB, CRC, RH MSB, RH LSB, CRC. A read before
+the measurement is done is NACKed. Each 16-bit word carries a CRC-8 (datasheet 4.12:
+polynomial 0x31, init 0xFF, no reflection, no final XOR; CRC(0xBEEF) = 0x92). Conversion
+(4.13): T = -45 + 175 * S_T / (2^16 - 1) °C, RH = 100 * S_RH / (2^16 - 1) %.
+
+NACKs and CRC mismatches are retried (`retries` more attempts); after that the poll's
+samples are invalid (COMM_ERROR) with an event, and polling goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from edge.config import Sht3xStream
+from edge.drivers.i2cbus import is_nack, load_smbus2, open_bus
+from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from edge.drivers.polled import Poll, PolledDriver
+from edge.errors import DeviceError, DeviceNotFound
+from edge.wire import SampleStatus
+
+COMMANDS = {"high": (0x24, 0x00), "medium": (0x24, 0x0B), "low": (0x24, 0x16)}
+MEASUREMENT_S = {"high": 0.0155, "medium": 0.0065, "low": 0.0045}
+SOFT_RESET = (0x30, 0xA2)
+
+
+def crc8(data: bytes | Sequence[int]) -> int:
+    """The SHT3x CRC-8 of `data`."""
+    crc = 0xFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x31) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc
+
+
+class CrcError(ValueError):
+    """A word's CRC does not match."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sht3xReading:
+    temperature_c: float
+    humidity_pct: float
+
+
+def decode_sht3x(data: bytes | Sequence[int]) -> Sht3xReading:
+    """Decode a 6-byte measurement. Raises CrcError on a CRC mismatch."""
+    raw = bytes(data)
+    if len(raw) != 6:
+        raise ValueError(f"an SHT3x measurement is 6 bytes, got {len(raw)}")
+    for name, word, crc in (("temperature", raw[0:2], raw[2]), ("humidity", raw[3:5], raw[5])):
+        if crc8(word) != crc:
+            raise CrcError(f"{name} CRC 0x{crc:02X}, expected 0x{crc8(word):02X}")
+    s_t = int.from_bytes(raw[0:2], "big")
+    s_rh = int.from_bytes(raw[3:5], "big")
+    return Sht3xReading(-45.0 + 175.0 * s_t / 65535.0, 100.0 * s_rh / 65535.0)
+
+
+def encode_sht3x(temperature_c: float, humidity_pct: float) -> bytes:
+    """The 6 bytes an SHT3x sends for these values (what the simulated sensor answers)."""
+    s_t = min(max(round((temperature_c + 45.0) * 65535.0 / 175.0), 0), 65535).to_bytes(2, "big")
+    s_rh = min(max(round(humidity_pct * 65535.0 / 100.0), 0), 65535).to_bytes(2, "big")
+    return s_t + bytes([crc8(s_t)]) + s_rh + bytes([crc8(s_rh)])
+
+
+class Sht3x(PolledDriver):
+    """The `sht3x` driver: channel 0 temperature (°C), channel 1 (optional) humidity (%RH).
+
+    Args:
+        cfg: the stream's config.
+        smbus: an `smbus2`-like module (a fake in tests); default: the simulated sensor when
+            the config has `sim:`, otherwise smbus2 (imported now).
+        clock: host clocks (a VirtualClock in tests).
+    Raises:
+        DriverUnavailable: smbus2 is not installed.
+    """
+
+    fault_tag = "sensor_fault"
+
+    def __init__(
+        self, cfg: Sht3xStream, smbus: Any | None = None, clock: Clock = SYSTEM_CLOCK
+    ) -> None:
+        super().__init__(cfg.rate_hz, cfg.batch_scans, len(cfg.channels), clock)
+        self.cfg = cfg
+        if smbus is None:
+            if cfg.sim is not None:
+                from edge.drivers.sim_smbus import SimSht3x, SimSmbus2
+
+                smbus = SimSmbus2(clock)
+                smbus.attach(cfg.bus, cfg.address, SimSht3x(cfg.sim, clock))
+            else:
+                smbus = load_smbus2("SHT3x")
+        self.smbus = smbus
+        self._bus: Any = None
+        self.retries = 0
+        self.crc_errors = 0
+        self.nacks = 0
+
+    @property
+    def where(self) -> str:
+        return f"SHT3x at 0x{self.cfg.address:02X} on /dev/i2c-{self.cfg.bus}"
+
+    def connect(self) -> None:
+        bus = open_bus(self.smbus, self.cfg.bus)
+        try:
+            bus.i2c_rdwr(self.smbus.i2c_msg.write(self.cfg.address, list(SOFT_RESET)))
+        except OSError as err:
+            bus.close()
+            if is_nack(err):
+                raise DeviceNotFound(f"{self.where}: no answer (NACK)", err.errno) from err
+            raise DeviceError(f"{self.where}: {err}", err.errno) from err
+        self._bus = bus
+        self._sleep(0.002)  # soft reset: 1.5 ms max (datasheet Table 4)
+
+    def poll(self) -> Poll:
+        problem, detail = "", ""
+        for attempt in range(self.cfg.retries + 1):
+            if attempt:
+                self.retries += 1
+            try:
+                return self._measure()
+            except CrcError as err:
+                self.crc_errors += 1
+                problem, detail = "CRC error", str(err)
+            except OSError as err:
+                self.nacks += is_nack(err)
+                problem, detail = ("NACK" if is_nack(err) else "bus error"), str(err)
+        bad = (SampleStatus.COMM_ERROR,) * self.channels
+        detail = f"{detail}; {self.cfg.retries + 1} attempt(s)"
+        return Poll((0.0,) * self.channels, bad, problem, detail)
+
+    def _measure(self) -> Poll:
+        bus = self._bus
+        if bus is None:
+            raise InterruptedError("driver closed")
+        msg = self.smbus.i2c_msg
+        bus.i2c_rdwr(msg.write(self.cfg.address, list(COMMANDS[self.cfg.repeatability])))
+        self._sleep(MEASUREMENT_S[self.cfg.repeatability])
+        read = msg.read(self.cfg.address, 6)
+        bus.i2c_rdwr(read)
+        r = decode_sht3x(bytes(read))
+        values = (r.temperature_c, r.humidity_pct)[: self.channels]
+        return Poll(values, (SampleStatus.VALID,) * self.channels)
+
+    def _sleep(self, seconds: float) -> None:
+        if not self.clock.sleep_until(
+            self.clock.monotonic_ns() + round(seconds * 1e9), self.closing
+        ):
+            raise InterruptedError("driver closed")
+
+    def disconnect(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.close()
+
+    def extra_health(self) -> dict[str, Any]:
+        return {"retries": self.retries, "crc_errors": self.crc_errors, "nacks": self.nacks}
