@@ -63,17 +63,25 @@ class Events:
     counted and reported in an event of their own.
     """
 
-    def __init__(self, session: Any, key: str, node: str, backlog: int = 1000) -> None:
-        self._pub = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+    def __init__(self, session: Any | None, key: str, node: str, backlog: int = 1000) -> None:
+        self._key = key
+        self._pub: Any = None
         self._node = node
         self._pending: deque[bytes] = deque()
         self._backlog = backlog
         self.dropped = 0
         self._lock = threading.Lock()
+        if session is not None:
+            self.attach(session)
+
+    def attach(self, session: Any) -> None:
+        """Start publishing on `session` (events raised before wait in the bounded queue)."""
+        self._pub = session.declare_publisher(
+            self._key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self.flush()
 
     def emit(self, level: int, source: str, tag: str, message: str) -> None:
         log.log(level, "%s [%s]: %s", source, tag, message)
@@ -87,7 +95,8 @@ class Events:
 
     def flush(self) -> None:
         """Publish what is waiting, if the hub listens."""
-        if not self._pub.matching_status.matching:
+        pub = self._pub
+        if pub is None or not pub.matching_status.matching:
             return
         with self._lock:
             pending, self._pending = self._pending, deque()
@@ -103,11 +112,13 @@ class Events:
             )
             pending.appendleft(encode_event(note))
         for payload in pending:
-            self._pub.put(payload)
+            pub.put(payload)
 
     def close(self) -> None:
         self.flush()
-        self._pub.undeclare()
+        if self._pub is not None:
+            self._pub.undeclare()
+            self._pub = None
 
 
 class StreamLoop:
@@ -144,24 +155,14 @@ class StreamLoop:
         self.clock = ScanClock(cfg.rate_hz)
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.clock_monitor: ClockMonitor = NoClockMonitor()
-        key = data_key(site, node, name)
-        # Live batches never block the acquisition thread: under congestion Zenoh drops the
-        # put, and the batch, already in the spool, is replayed once the hub has not acked it.
-        # Blocking here would stall the device read and overflow the device's buffer instead.
-        self._pub = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE,
-            priority=zenoh.Priority.DATA_HIGH,
-        )
-        # Replayed batches go at a lower priority: Zenoh sends live data ahead of them.
-        self._replay_pub = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE,
-            priority=zenoh.Priority.DATA_LOW,
-        )
-        self.subscriber_timeout_s = 10.0
+        self._key = data_key(site, node, name)
+        self._pub: Any = None
+        self._replay_pub: Any = None
+        if session is not None:
+            self.attach(session)
+        self.subscriber_timeout_s = 3.0
+        self.hub_unreachable = threading.Event()
+        """Set by the agent when its first attempt to reach the hub failed."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
         self._replayer = threading.Thread(target=self._replay, name=f"replay-{name}", daemon=True)
@@ -182,6 +183,28 @@ class StreamLoop:
             f"sequence numbers continue at {self.counters.next_sequence}",
         )
 
+    def attach(self, session: Any) -> None:
+        """Publish on `session` from now on. Until then batches only go to the spool."""
+        # Live batches never block the acquisition thread: under congestion Zenoh drops the
+        # put, and the batch, already in the spool, is replayed once the hub has not acked it.
+        # Blocking here would stall the device read and overflow the device's buffer instead.
+        self._replay_pub = session.declare_publisher(
+            self._key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_LOW,  # Zenoh sends live data ahead of replays
+        )
+        self._pub = session.declare_publisher(
+            self._key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE,
+            priority=zenoh.Priority.DATA_HIGH,
+        )
+
+    def _hub_listens(self) -> bool:
+        pub = self._pub
+        return pub is not None and bool(pub.matching_status.matching)
+
     def start(self) -> None:
         self._thread.start()
         self._replayer.start()
@@ -193,7 +216,9 @@ class StreamLoop:
         with the hub up should not need one). After `timeout` the stream starts anyway.
         """
         deadline = time.monotonic() + timeout
-        while not self._pub.matching_status.matching:
+        while not self._hub_listens():
+            if self.hub_unreachable.is_set():
+                return False  # the first connection attempt failed: acquire into the spool now
             if time.monotonic() >= deadline:
                 self.events.emit(
                     logging.WARNING,
@@ -256,7 +281,9 @@ class StreamLoop:
                     f"{d.reason}: dropped {d.batches} unacked batch(es), sequences "
                     f"{d.first_seq}..{d.last_seq} — the hub never received them",
                 )
-            self._pub.put(payload, attachment=encode_u64(self.spool.floor))
+            pub = self._pub
+            if pub is not None:
+                pub.put(payload, attachment=encode_u64(self.spool.floor))
             index += scans
             c.next_sequence = seq + 1
             c.batches += 1
@@ -278,7 +305,7 @@ class StreamLoop:
             oldest = self.spool.oldest_unacked_time_ns()
             if oldest is None or time.time_ns() - oldest < after_ns:
                 continue
-            if not self._pub.matching_status.matching:
+            if not self._hub_listens():
                 continue  # the hub is away: nothing to send to
             first, until = self.spool.acked + 1, self.counters.next_sequence - 1
             sent, batches, t_start = 0, 0, time.monotonic()
@@ -289,9 +316,9 @@ class StreamLoop:
                 # Keep the network queue short: wait for acks rather than piling up data
                 # ahead of the live batches.
                 while (seq - self.spool.acked) * len(payload) > window:
-                    if self._stop.wait(0.05) or not self._pub.matching_status.matching:
+                    if self._stop.wait(0.05) or not self._hub_listens():
                         break
-                if self._stop.is_set() or not self._pub.matching_status.matching:
+                if self._stop.is_set() or not self._hub_listens():
                     break
                 self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
                 sent += len(payload)
@@ -313,8 +340,10 @@ class StreamLoop:
         for thread in (self._thread, self._replayer):
             if thread.is_alive():
                 thread.join(timeout)
-        self._pub.undeclare()
-        self._replay_pub.undeclare()
+        for pub in (self._pub, self._replay_pub):
+            if pub is not None:
+                pub.undeclare()
+        self._pub = self._replay_pub = None
         self.spool.close()
 
 
@@ -353,6 +382,10 @@ class EdgeAgent:
         self._sync_thread = threading.Thread(
             target=self._sync_spools, name="spool-sync", daemon=True
         )
+        self._connector = threading.Thread(target=self._connect, name="connect", daemon=True)
+        self._session_lock = threading.Lock()
+        self._started = False
+        self._closed = False
         self.started_ns = 0
 
     def __enter__(self) -> EdgeAgent:
@@ -365,9 +398,12 @@ class EdgeAgent:
         self.close()
 
     def start(self) -> None:
-        """Open the session, the spools and the streams. If anything fails (or a Ctrl-C lands)
-        part-way, everything opened so far is closed again before the error propagates: a
-        Zenoh session left open with callback subscribers hangs the interpreter at exit."""
+        """Open the spools and start acquiring at once; connect to the hub in the background.
+
+        Acquisition never waits for the network: a buoy that boots while its link is down
+        spools from the first scan and delivers once the hub is reachable. If anything fails
+        (or a Ctrl-C lands) part-way, everything opened so far is closed again.
+        """
         try:
             self._start()
         except BaseException:
@@ -376,10 +412,8 @@ class EdgeAgent:
 
     def _start(self) -> None:
         sid, node = self.site.site, self.node
-        self._session = zenoh.open(client_config(self.endpoints))
-        events = self.events = Events(self._session, events_key(sid, node), node)
-        self._token = self._session.liveliness().declare_token(alive_key(sid, node))
-        self._health_pub = self._session.declare_publisher(health_key(sid, node))
+        self._started = True
+        events = self.events = Events(None, events_key(sid, node), node)
         node_cfg = self.site.nodes[node]
         self.clock_monitor = make_clock_monitor(
             node_cfg, lambda level, tag, msg: events.emit(level, "clock", tag, msg)
@@ -392,9 +426,25 @@ class EdgeAgent:
                 node_cfg.spool.max_age_s,
                 node_cfg.spool.segment_bytes,
             )
-            loop = StreamLoop(sid, node, name, cfg, self._session, events, spool, node_cfg.spool)
+            loop = StreamLoop(sid, node, name, cfg, None, events, spool, node_cfg.spool)
             loop.clock_monitor = self.clock_monitor
             self.loops.append(loop)
+        self.started_ns = time.time_ns()
+        for loop in self.loops:
+            loop.start()
+        self._sync_thread.start()
+        events.emit(
+            logging.INFO,
+            "agent",
+            "started",
+            f"started fleetdaq {__version__} with {len(self.loops)} stream(s), "
+            f"connecting to {self.endpoints}",
+        )
+        self._connector.start()
+
+    def _connect(self) -> None:
+        """Open the Zenoh session, retrying until the hub's router answers or we stop."""
+        sid, node = self.site.site, self.node
         by_stream = {loop.name: loop for loop in self.loops}
 
         def on_ack(sample: Any) -> None:
@@ -403,19 +453,41 @@ class EdgeAgent:
             if loop is not None and seq is not None:
                 loop.spool.ack(seq)
 
-        self._ack_sub = self._session.declare_subscriber(ack_selector(sid, node), on_ack)
-        self.started_ns = time.time_ns()
-        for loop in self.loops:
-            loop.start()
-        self._health_thread.start()
-        self._sync_thread.start()
-        self.events.emit(
-            logging.INFO,
-            "agent",
-            "started",
-            f"started fleetdaq {__version__} with "
-            f"{len(self.loops)} stream(s), connecting to {self.endpoints}",
-        )
+        backoff, warned = 0.5, False
+        while not self._stop.is_set():
+            try:
+                # A short first attempt: the streams wait for it before they start.
+                timeout_ms = 2000 if warned else 500
+                session: Any = zenoh.open(client_config(self.endpoints, timeout_ms=timeout_ms))
+            except zenoh.ZError as err:
+                for loop in self.loops:
+                    loop.hub_unreachable.set()
+                if not warned:
+                    warned = True
+                    log.warning(
+                        "hub not reachable at %s (%s); acquiring into the spool and retrying",
+                        self.endpoints,
+                        err,
+                    )
+                if self._stop.wait(backoff):
+                    return
+                backoff = min(backoff * 2, 10.0)
+                continue
+            with self._session_lock:
+                if self._stop.is_set():
+                    session.close()
+                    return
+                self._session = session
+                self._token = session.liveliness().declare_token(alive_key(sid, node))
+                self._health_pub = session.declare_publisher(health_key(sid, node))
+                self._ack_sub = session.declare_subscriber(ack_selector(sid, node), on_ack)
+                for loop in self.loops:
+                    loop.attach(session)
+                assert self.events is not None
+                self.events.attach(session)
+            log.info("connected to the hub at %s", self.endpoints)
+            self._health_thread.start()
+            return
 
     def health(self) -> dict[str, Any]:
         return {
@@ -446,10 +518,10 @@ class EdgeAgent:
         }
 
     def _health(self) -> None:
-        events = self.events
+        events, pub = self.events, self._health_pub
         assert events is not None
         while not self._stop.wait(1.0):
-            self._health_pub.put(json.dumps(self.health()).encode())
+            pub.put(json.dumps(self.health()).encode())
             events.flush()
 
     def _sync_spools(self) -> None:
@@ -460,15 +532,16 @@ class EdgeAgent:
 
     def close(self) -> None:
         """Stop every stream and close the session. Idempotent; safe after a partial start."""
-        if self._session is None:
+        if not self._started or self._closed:
             return
+        self._closed = True
         self._stop.set()
         try:
             for loop in self.loops:
                 loop.stop()
             for loop in self.loops:
                 loop.join(5.0)
-            for thread in (self._health_thread, self._sync_thread):
+            for thread in (self._connector, self._health_thread, self._sync_thread):
                 if thread.is_alive():
                     thread.join(5.0)
             self.clock_monitor.close()
@@ -476,8 +549,10 @@ class EdgeAgent:
                 self.events.emit(logging.INFO, "agent", "stopped", "stopped")
                 self.events.close()
         finally:
-            for entity in (self._ack_sub, self._health_pub, self._token):
-                if entity is not None:
-                    entity.undeclare()
-            self._session.close()
-            self._session = None
+            with self._session_lock:
+                for entity in (self._ack_sub, self._health_pub, self._token):
+                    if entity is not None:
+                        entity.undeclare()
+                if self._session is not None:
+                    self._session.close()
+                    self._session = None

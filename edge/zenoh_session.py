@@ -8,13 +8,16 @@ from typing import Any
 import zenoh
 
 
-def client_config(endpoints: list[str]) -> Any:
-    """A client session that connects to the hub's router(s) and never scouts."""
+def client_config(endpoints: list[str], timeout_ms: int = -1) -> Any:
+    """A client session that connects to the hub's router(s) and never scouts.
+
+    `timeout_ms` bounds how long opening waits for a router (-1: forever). Once open, the
+    session reconnects by itself when the router restarts.
+    """
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps(endpoints))
-    # Keep trying to reach the router at start-up instead of failing the open.
-    conf.insert_json5("connect/timeout_ms", "-1")
+    conf.insert_json5("connect/timeout_ms", str(timeout_ms))
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
 

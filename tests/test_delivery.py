@@ -365,3 +365,26 @@ def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Ri
     assert summary["malformed"] == 10_000, summary["malformed"]
     _nothing_lost(rig)
     assert set(summary["streams"]) == {"wec/t8"}  # type: ignore[arg-type]
+
+
+def test_an_edge_that_boots_before_its_hub_spools_from_the_first_scan(rig: Rig):
+    edge = rig.edge()
+    time.sleep(4.0)  # the link is down at boot: acquisition must not wait for it
+    hub = rig.hub()
+    wait_until(lambda: rig.acked() >= 60, 40, "the spooled start to be acked")
+    wait_until(rig.caught_up, 30, "the hub to catch up with the live edge")
+    assert edge.terminate() == 0
+    assert hub.terminate() == 0
+    _nothing_lost(rig)
+    assert min(rig.sequences()) == 0, "the first batch of the run is recorded"
+
+
+def test_an_edge_without_any_hub_still_stops_cleanly_and_quickly(rig: Rig):
+    edge = rig.edge()
+    wait_until((rig.tmp / "spool" / "wec" / "t8").exists, 20, "the edge to start")
+    time.sleep(3.0)
+    t = time.monotonic()
+    assert edge.terminate(timeout=10) == 0
+    assert time.monotonic() - t < 8
+    # Acquisition started within about a second of the spool opening, hub or not.
+    assert len(rig.spooled()) >= 20, "what it acquired meanwhile is in the spool"
