@@ -19,11 +19,13 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import zenoh
 
 from edge import __version__
 from edge.clock import ClockMonitor, NoClockMonitor, make_clock_monitor
 from edge.config import SiteConfig, SpoolConfig, StreamConfig
+from edge.display import DisplayLoop, create_displays
 from edge.drivers import Driver, DriverHealth, create_driver
 from edge.errors import DriverError
 from edge.spool import StreamSpool
@@ -150,6 +152,9 @@ class StreamLoop:
         names = tuple(ch.name for ch in cfg.channels)
         units = tuple(ch.unit for ch in cfg.channels)
         self.encoder = BatchEncoder(node, name, names, units)
+        self.channel_index = {ch.name: i for i, ch in enumerate(cfg.channels)}
+        self.latest: npt.NDArray[np.float64] | None = None
+        """The newest scan in engineering units (what displays show)."""
         self.scale = np.array([ch.scale for ch in cfg.channels])
         self.offset = np.array([ch.offset for ch in cfg.channels])
         self.clock = ScanClock(cfg.rate_hz)
@@ -265,6 +270,7 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
+            self.latest = values[-1]
             for ev in block.events:
                 self.events.emit(ev.level, self.name, ev.tag, ev.message)
             self.clock.observe(index + scans - 1, block.host_ns, block.device_ns)
@@ -376,6 +382,7 @@ class EdgeAgent:
         self._health_pub: Any = None
         self._token: Any = None
         self.loops: list[StreamLoop] = []
+        self.displays: list[DisplayLoop] = []
         self.clock_monitor: ClockMonitor = NoClockMonitor()
         self._stop = threading.Event()
         self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
@@ -429,9 +436,16 @@ class EdgeAgent:
             loop = StreamLoop(sid, node, name, cfg, None, events, spool, node_cfg.spool)
             loop.clock_monitor = self.clock_monitor
             self.loops.append(loop)
+        self.displays = create_displays(
+            node_cfg,
+            self.latest_value,
+            lambda level, tag, msg: events.emit(level, "display", tag, msg),
+        )
         self.started_ns = time.time_ns()
         for loop in self.loops:
             loop.start()
+        for display in self.displays:
+            display.start()
         self._sync_thread.start()
         events.emit(
             logging.INFO,
@@ -441,6 +455,13 @@ class EdgeAgent:
             f"connecting to {self.endpoints}",
         )
         self._connector.start()
+
+    def latest_value(self, stream: str, channel: str) -> float | None:
+        """The newest value of `stream`/`channel` on this node, None before the first batch."""
+        loop = next((lp for lp in self.loops if lp.name == stream), None)
+        if loop is None or loop.latest is None or channel not in loop.channel_index:
+            return None
+        return float(loop.latest[loop.channel_index[channel]])
 
     def _connect(self) -> None:
         """Open the Zenoh session, retrying until the hub's router answers or we stop."""
@@ -537,6 +558,8 @@ class EdgeAgent:
         self._closed = True
         self._stop.set()
         try:
+            for display in self.displays:
+                display.close()
             for loop in self.loops:
                 loop.stop()
             for loop in self.loops:

@@ -131,3 +131,25 @@ def test_an_edge_loads_no_hub_code_or_hub_dependencies():
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=False
     )
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_the_am_cell_lcd_shows_the_live_thermocouple_temperature(tmp_path: Path):
+    """The demo's AM-cell node: its (simulated) 16x2 LCD shows the substrate temperature
+    the node is acquiring — the agent feeds its displays from the newest scan."""
+    from edge.agent import EdgeAgent
+    from edge.config import demo_config_path, load_config
+
+    site = load_config(demo_config_path())
+    port = free_port()  # nothing listens: the agent runs without a hub
+    agent = EdgeAgent(site, "am-cell", [f"tcp/127.0.0.1:{port}"], tmp_path / "spool")
+    with agent:
+        deadline = time.monotonic() + 20
+        (display,) = agent.displays
+        assert display.sim_lcd is not None
+        while True:
+            value = agent.latest_value("tc", "substrate")
+            shown = display.sim_lcd.lines()
+            if value is not None and "TC" in shown[0] and f"{value:7.2f}".strip() in shown[0]:
+                break
+            assert time.monotonic() < deadline, (value, shown)
+            time.sleep(0.1)
