@@ -157,6 +157,8 @@ class StreamLoop:
         """The newest scan in engineering units (what displays show)."""
         self.scale = np.array([ch.scale for ch in cfg.channels])
         self.offset = np.array([ch.offset for ch in cfg.channels])
+        self._tiled_scale: npt.NDArray[np.float64] = np.empty(0)
+        self._tiled_offset: npt.NDArray[np.float64] = np.empty(0)
         self.clock = ScanClock(cfg.rate_hz)
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.clock_monitor: ClockMonitor = NoClockMonitor()
@@ -265,7 +267,7 @@ class StreamLoop:
         while not self._stop.is_set():
             block = self.driver.read()
             scans = block.raw.shape[0]
-            values = block.raw * self.scale + self.offset
+            values = self._engineering(block.raw)
             if block.status is not None:
                 bad = block.status != 0
                 values[bad] = np.nan
@@ -294,6 +296,17 @@ class StreamLoop:
             c.next_sequence = seq + 1
             c.batches += 1
             c.scans += scans
+
+    def _engineering(self, raw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """raw * scale + offset per channel, as two flat passes: numpy broadcasts a short
+        last axis row by row, three times slower than multiplying by a pre-tiled vector."""
+        if self._tiled_scale.size != raw.size:
+            scans = raw.shape[0]
+            self._tiled_scale = np.tile(self.scale, scans)
+            self._tiled_offset = np.tile(self.offset, scans)
+        flat = raw.reshape(-1) * self._tiled_scale
+        flat += self._tiled_offset
+        return flat.reshape(raw.shape)
 
     def sync_spool(self) -> None:
         """fsync the spool; the agent calls this from its own thread, never the acquisition's."""
