@@ -28,6 +28,9 @@ test: lint typecheck
 bench: $(STAMP)
 	$(PY) bench/record.py
 	$(PY) bench/edge.py
+	$(PY) bench/t8.py
+	$(PY) bench/timing.py
+	$(PY) bench/outage.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
