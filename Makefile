@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck bench clean
+.PHONY: demo test lint typecheck imports bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -13,16 +13,19 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/fleetdaq demo $(ARGS)
+	$(VENV)/bin/fleetdaq demo --data data $(ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check edge hub ptp tests bench
-	$(VENV)/bin/ruff format --check edge hub ptp tests bench
+	$(VENV)/bin/ruff check edge hub ptp fleetdaq tests bench
+	$(VENV)/bin/ruff format --check edge hub ptp fleetdaq tests bench
 
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy
 
-test: lint typecheck
+imports: $(STAMP)
+	$(VENV)/bin/lint-imports
+
+test: lint typecheck imports
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

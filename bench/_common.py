@@ -21,8 +21,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from edge.config import SiteConfig, WaveSimStream, parse_config
-from edge.drivers.wave_sim import WaveSim
+from edge.config.load import parse_config
+from edge.config.site import SiteConfig
+from edge.drivers.wave_sim import WaveSim, WaveSimStream
 from edge.wire import BatchEncoder
 from ptp.quality import UNSYNCED
 

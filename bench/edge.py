@@ -3,7 +3,7 @@
     python bench/edge.py [--data-seconds 60] [--rounds 3] [--paced 10]
 
 A router with a subscriber that only counts bytes runs in another process; this process is
-the edge: a Zenoh client session and the real StreamLoop (scale/offset, ScanClock, encode,
+the edge: a Zenoh client session and the real StreamLoop (scale/offset, DeviceTimeFit, encode,
 spool append, put). Every phase pushes the same number of batches (--data-seconds of T8 data,
 10 batches/s) as fast as it can, waits until the subscriber has counted all of them, and
 reports this process's CPU time (time.process_time: every thread, Zenoh's included) per
@@ -72,12 +72,13 @@ from _common import (
     wait_until,
 )
 
-from edge.agent import Events, StreamLoop
-from edge.config import SpoolConfig, WaveSimStream
-from edge.drivers import Block
-from edge.drivers.wave_sim import WaveSim
+from edge.config.node import SpoolConfig
+from edge.drivers.base import Block
+from edge.drivers.wave_sim import WaveSim, WaveSimStream
+from edge.event_publisher import EventPublisher
+from edge.keys import SiteKeys
 from edge.spool import StreamSpool
-from edge.wire import data_key, data_selector, events_key
+from edge.stream_loop import StreamLoop
 from edge.zenoh_session import client_config, router_config
 from ptp.quality import UNSYNCED
 
@@ -95,7 +96,7 @@ def sink_main(port: int, ready: Any, stop: Any, messages: Any, nbytes: Any) -> N
         nbytes.value += len(sample.payload)
         messages.value += 1
 
-    sub = session.declare_subscriber(data_selector(SITE), on_sample)
+    sub = session.declare_subscriber(SiteKeys(SITE).all_data, on_sample)
     try:
         ready.set()
         stop.wait(900.0)
@@ -217,7 +218,7 @@ class Bench:
         if not self.ready.wait(60.0):
             raise RuntimeError("the router/subscriber process did not start")
         self.session: Any = zenoh.open(client_config([endpoint(self.port)]))
-        self.events = Events(self.session, events_key(SITE, self.node), self.node)
+        self.events = EventPublisher(self.session, SiteKeys(SITE).events(self.node), self.node)
 
     def close(self) -> None:
         try:
@@ -296,7 +297,7 @@ class Bench:
 
     def raw_put(self) -> float:
         pub = self.session.declare_publisher(
-            data_key(SITE, self.node, STREAM),
+            SiteKeys(SITE).data(self.node, STREAM),
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
         )

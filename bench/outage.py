@@ -34,8 +34,9 @@ import zenoh
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from edge.keys import SiteKeys  # noqa: E402
 from edge.spool import StreamSpool  # noqa: E402
-from edge.wire import BatchEncoder, data_key, read_header  # noqa: E402
+from edge.wire import BatchEncoder, read_header  # noqa: E402
 from edge.zenoh_session import client_config  # noqa: E402
 from ptp.quality import UNSYNCED  # noqa: E402
 
@@ -115,7 +116,7 @@ def main() -> None:
                 [
                     sys.executable,
                     "-m",
-                    "hub.cli",
+                    "fleetdaq",
                     "hub",
                     "--config",
                     str(cfg),
@@ -152,7 +153,7 @@ def main() -> None:
                 replayed[0] += 1
 
         session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
-        sub = session.declare_subscriber(data_key("bench", "wec", "t8"), on_sample)
+        sub = session.declare_subscriber(SiteKeys("bench").data("wec", "t8"), on_sample)
 
         elog = (tmp / "edge.log").open("wb")
         t_start = time.monotonic()
@@ -161,7 +162,7 @@ def main() -> None:
                 [
                     sys.executable,
                     "-m",
-                    "hub.cli",
+                    "fleetdaq",
                     "edge",
                     "--config",
                     str(cfg),

@@ -74,8 +74,9 @@ from _common import (
 )
 from mcap.writer import CompressionType, Writer
 
-from edge.config import parse_config
-from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE, data_key
+from edge.config.load import parse_config
+from edge.keys import SiteKeys
+from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
 from hub.session import topic_of
 
 TARGET_MB_PER_S = 100.0
@@ -119,7 +120,7 @@ def publisher_main(
     pool = PayloadPool(cfg, node, args.pool, _seed(index))
     session: Any = zenoh.open(client_config([ep]))
     pub = session.declare_publisher(
-        data_key(SITE, node, STREAM),
+        SiteKeys(SITE).data(node, STREAM),
         congestion_control=zenoh.CongestionControl.BLOCK,
         reliability=zenoh.Reliability.RELIABLE,
     )
@@ -224,7 +225,7 @@ def _recorded(hub: Any) -> int:
 
 
 def run_hub(args: argparse.Namespace, tmp: Path, log: Progress) -> HubRun:
-    from hub.service import Hub
+    from hub.runtime import HubRuntime
 
     port = free_port()
     ep = endpoint(port)
@@ -247,7 +248,7 @@ def run_hub(args: argparse.Namespace, tmp: Path, log: Progress) -> HubRun:
     window = int(args.window_mb * 1e6)
     payload = PayloadPool(t8_stream(site, node_name(0)), node_name(0), 1, 0).payload_bytes
     try:
-        with Hub(site, data_dir=data_dir, listen=[ep]) as hub:
+        with HubRuntime(site, data_dir=data_dir, listen=[ep]) as hub:
             log(f"hub listening on {ep}; starting {args.publishers} publisher processes")
             for i in range(args.publishers):
                 p = ctx.Process(
@@ -343,7 +344,7 @@ def run_hub(args: argparse.Namespace, tmp: Path, log: Progress) -> HubRun:
     run.gaps = sum(s["gaps"] for s in streams.values())
     run.duplicates = sum(s["duplicates"] for s in streams.values())
     run.malformed = summary["malformed"]
-    run.overflow = int(getattr(hub.recorder, "overflow", 0))
+    run.overflow = int(summary.get("overflow", 0))
     run.per_publisher = {r["node"]: r["published"] for r in done}
     run.counts_match = run.recorded == run.published and all(
         streams.get(f"{n}/{STREAM}", {}).get("batches") == c for n, c in run.per_publisher.items()

@@ -36,9 +36,9 @@ sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge`
 import numpy as np
 
 from edge.agent import EdgeAgent
-from edge.config import LabJackT8Stream, parse_config
-from edge.drivers.labjack_t8 import LabJackT8
-from edge.drivers.pacing import VirtualClock
+from edge.config.load import parse_config
+from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
+from edge.drivers.pacing import VirtualTime
 from edge.drivers.sim_ljm import SimLJM
 
 REPO = Path(__file__).resolve().parent.parent
@@ -94,8 +94,8 @@ def progress(msg: str) -> None:
 def generation_cpu(cfg: LabJackT8Stream, reads: int) -> float:
     """CPU seconds the simulator spends generating `reads` blocks (a real T8's hardware work)."""
     assert cfg.sim is not None
-    ljm = SimLJM(cfg.sim, VirtualClock())
-    driver = LabJackT8(cfg, ljm=ljm, clock=ljm.clock)
+    ljm = SimLJM(cfg.sim, VirtualTime())
+    driver = LabJackT8(cfg, transport=ljm, clock=ljm.clock)
     driver.open()
     stream = ljm.device.stream
     assert stream is not None
@@ -117,7 +117,7 @@ def main() -> None:
         site = parse_config(cfg_path.read_text(), str(cfg_path))
         hub_log = (data / "hub.log").open("wb")
         hub = subprocess.Popen(
-            [sys.executable, "-m", "hub.cli", "hub", "--config", str(cfg_path)],
+            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(cfg_path)],
             cwd=REPO,
             stdout=hub_log,
             stderr=subprocess.STDOUT,

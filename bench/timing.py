@@ -6,7 +6,7 @@ A simulated T8 (edge/drivers/sim_ljm.py) streams 10 kS/s in virtual time, so 10 
 in seconds: its CORE_TIMER (100 MHz) runs `--drift-ppm` fast against the host, and every
 eStreamRead returns a uniformly random 0..`--latency-ms` after its last scan. The real
 `labjack_t8` driver reads it (CORE_TIMER decoding, unwrapping) and each batch is stamped the
-way the agent stamps it: ``ScanClock.observe(last index, host time, device time)`` then
+way the agent stamps it: ``DeviceTimeFit.observe(last index, host time, device time)`` then
 ``time_of(first index)``. The error is that stamp minus the host time at which the sim really
 sampled the batch's first scan.
 
@@ -37,11 +37,12 @@ sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge`
 
 import numpy as np
 
-from edge.config import LabJackT8Sim, LabJackT8Stream, parse_config
-from edge.drivers.labjack_t8 import LabJackT8
-from edge.drivers.pacing import VirtualClock
+from edge.config.load import parse_config
+from edge.device_time import DeviceTimeFit
+from edge.drivers.labjack_ljm import LabJackT8Sim
+from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
+from edge.drivers.pacing import VirtualTime
 from edge.drivers.sim_ljm import SimLJM
-from edge.timebase import ScanClock
 
 RATE_HZ = 10_000
 TARGET_P99_US = 10.0
@@ -93,10 +94,10 @@ def run(scans: int, args: argparse.Namespace) -> dict[str, Any]:
     cfg = stream_config(scans, args)
     sim = cfg.sim
     assert isinstance(sim, LabJackT8Sim)
-    clock = VirtualClock()
+    clock = VirtualTime()
     ljm = SimLJM(sim, clock)
-    driver = LabJackT8(cfg, ljm=ljm, clock=clock)
-    fit = ScanClock(cfg.rate_hz)
+    driver = LabJackT8(cfg, transport=ljm, clock=clock)
+    fit = DeviceTimeFit(cfg.rate_hz)
     modaq = Modaq2OneShot()
     driver.open()
     reads = round(args.minutes * 60 * RATE_HZ / scans)

@@ -7,97 +7,31 @@ returns one `DisplayLoop` per display: a thread that renders the lines from
 ``latest(stream, channel)`` at `refresh_hz` and sends changed rows to the LCD. A display is a
 sink: when its bus fails it retries a bounded number of times per refresh, then raises an
 event, keeps trying at the refresh rate, and raises another event when it works again; it
-never touches acquisition. ``{{`` and ``}}`` are literal braces; a value that is missing or
-not finite shows as dashes.
+never touches acquisition. Line syntax: `edge.display_text`.
 """
 
 from __future__ import annotations
 
 import logging
-import math
-import re
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from edge.drivers.hd44780 import Hd44780Pcf8574
+from edge.display_text import Latest, parse_line
+from edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay
 from edge.drivers.i2cbus import load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from edge.drivers.table import DISPLAYS, load_sim
 from edge.errors import DriverError
 
 if TYPE_CHECKING:
-    from edge.config import LcdDisplay, NodeConfig
+    from edge.config.node import NodeConfig
 
 log = logging.getLogger("fleetdaq.display")
 
-Latest = Callable[[str, str], float | None]
-"""latest(stream, channel): the newest engineering value, None when there is none yet."""
 Emit = Callable[[int, str, str], None]
 """emit(level, tag, message): raise an event."""
-
-_FIELD = re.compile(r"\{\{|\}\}|\{([^{}]*)\}|[{}]")
-_REF = re.compile(r"^([a-z][a-z0-9_-]{0,62})\.([A-Za-z][A-Za-z0-9_.-]{0,62})$")
-
-
-@dataclass(frozen=True, slots=True)
-class Field:
-    stream: str
-    channel: str
-    spec: str
-
-
-@dataclass(frozen=True, slots=True)
-class Line:
-    """A parsed display line: literal text and fields."""
-
-    parts: tuple[str | Field, ...]
-
-    @property
-    def references(self) -> list[tuple[str, str]]:
-        return [(p.stream, p.channel) for p in self.parts if isinstance(p, Field)]
-
-    def render(self, latest: Latest) -> str:
-        out: list[str] = []
-        for part in self.parts:
-            if isinstance(part, str):
-                out.append(part)
-                continue
-            value = latest(part.stream, part.channel)
-            if value is None or not math.isfinite(value):
-                width = len(format(0.0, part.spec)) if part.spec else 4
-                out.append("-" * max(width, 2))
-            else:
-                out.append(format(value, part.spec))
-        return "".join(out)
-
-
-def parse_line(text: str) -> Line:
-    """Parse a display line. Raises ValueError naming what is wrong."""
-    parts: list[str | Field] = []
-    pos = 0
-    for m in _FIELD.finditer(text):
-        parts.append(text[pos : m.start()])
-        pos = m.end()
-        token = m.group(0)
-        if token in ("{{", "}}"):
-            parts.append(token[0])
-            continue
-        if m.group(1) is None:
-            raise ValueError(f"unmatched {token!r} at column {m.start() + 1} (use {token * 2})")
-        body = m.group(1)
-        ref, _, spec = body.partition(":")
-        ref_m = _REF.match(ref.strip())
-        if ref_m is None:
-            raise ValueError(f"{{{body}}}: expected {{stream.channel}} or {{stream.channel:spec}}")
-        try:
-            format(1.5, spec)
-        except ValueError as err:
-            raise ValueError(f"{{{body}}}: bad format spec {spec!r}: {err}") from None
-        parts.append(Field(ref_m.group(1), ref_m.group(2), spec))
-    parts.append(text[pos:])
-    return Line(tuple(p for p in parts if p != ""))
 
 
 class DisplayLoop:
@@ -109,29 +43,19 @@ class DisplayLoop:
         cfg: LcdDisplay,
         latest: Latest,
         emit: Emit,
-        smbus: Any | None = None,
-        clock: Clock = SYSTEM_CLOCK,
+        transport: Any | None = None,
+        clock: TimeSource = SYSTEM_TIME,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
+        """`transport` is an `smbus2`-like module (the simulated LCD's bus in sims, a fake in
+        tests); default: smbus2 (imported now). `sleep` waits out the LCD's start-up delays."""
         self.name = name
         self.cfg = cfg
         self.latest = latest
         self.emit = emit
         self.clock = clock
         self._sleep = sleep
-        self.sim_lcd: Any = None
-        """The simulated LCD when the config has `sim:` (tests read what it shows)."""
-        if smbus is None:
-            if cfg.sim is not None:
-                from edge.drivers.sim_smbus import SimLcd, SimSmbus2
-
-                smbus = SimSmbus2(clock)
-                self.sim_lcd = SimLcd(cfg.sim, clock, cfg.cols, cfg.rows)
-                smbus.attach(cfg.bus, cfg.address, self.sim_lcd)
-                self._sleep = lambda s: None
-            else:
-                smbus = load_smbus2("LCD display")
-        self.smbus = smbus
+        self.smbus = transport if transport is not None else load_smbus2("LCD display")
         self.lines = [parse_line(text) for text in cfg.lines]
         self.where = f"display {name} (LCD at 0x{cfg.address:02X} on /dev/i2c-{cfg.bus})"
         self._bus: Any = None
@@ -141,6 +65,8 @@ class DisplayLoop:
         self._thread = threading.Thread(target=self._run, name=f"display-{name}", daemon=True)
         self.refreshes = 0
         self.failures = 0
+        self.refreshed = threading.Event()
+        """Set after every refresh the LCD took (tests wait on it instead of sleeping)."""
 
     def start(self) -> None:
         self._thread.start()
@@ -166,6 +92,7 @@ class DisplayLoop:
                 self._disconnect()
                 continue
             self.refreshes += 1
+            self.refreshed.set()
             if self._failing is not None:
                 self.emit(logging.INFO, "display_ok", f"{self.where}: showing values again")
                 self._failing = None
@@ -212,9 +139,18 @@ class DisplayLoop:
 
 
 def create_displays(node_cfg: NodeConfig, latest: Latest, emit: Emit) -> list[DisplayLoop]:
-    """One DisplayLoop per display of the node (not started).
+    """One DisplayLoop per display of the node (not started); a display with `sim:` runs on
+    its simulated transport (from `edge.drivers.table`), without the LCD's start-up waits.
 
     Raises:
         DriverUnavailable: a real (not simulated) display needs smbus2 and it is missing.
     """
-    return [DisplayLoop(name, cfg, latest, emit) for name, cfg in node_cfg.displays.items()]
+    loops = []
+    for name, cfg in node_cfg.displays.items():
+        if cfg.sim is not None:
+            _, sim = DISPLAYS[cfg.driver]
+            bus = load_sim(sim)(cfg, SYSTEM_TIME)
+            loops.append(DisplayLoop(name, cfg, latest, emit, bus, sleep=lambda s: None))
+        else:
+            loops.append(DisplayLoop(name, cfg, latest, emit))
+    return loops

@@ -86,6 +86,8 @@ class StreamSpool:
         self._retired: list[int] = []
         self.bytes = 0
         self.dropped_batches = 0
+        self.acks_refused = 0
+        """Acks for sequences not appended yet, ignored (see `ack`)."""
         self.dir.mkdir(parents=True, exist_ok=True)
         self.acked = self._read_acked()
         self.recovery = self._scan()
@@ -209,16 +211,24 @@ class StreamSpool:
 
     # --- acks and replay ------------------------------------------------------------------------
 
-    def ack(self, seq: int) -> None:
-        """The hub has durably recorded every batch up to `seq`: delete what it covers."""
+    def ack(self, seq: int) -> bool:
+        """The hub has durably recorded every batch up to `seq`: delete what it covers.
+
+        Returns False, changing nothing, for an ack of a sequence this spool has not appended
+        yet: a confused or forged ack must never delete data the hub cannot have received.
+        """
         with self._lock:
+            if seq >= self.next_sequence:
+                self.acks_refused += 1
+                return False
             if seq <= self.acked:
-                return
+                return True
             self.acked = seq
             self._delete_acked()
         tmp = self.dir / (_ACKED + ".tmp")
         tmp.write_text(str(seq))
         os.replace(tmp, self.dir / _ACKED)
+        return True
 
     def _delete_acked(self) -> None:
         # The newest segment stays open for appends even when fully acked.

@@ -1,4 +1,5 @@
-"""The wire contract between edge and hub: Zenoh key space and the SampleBatch CDR codec.
+"""The SampleBatch codec: the high-rate message from edge to hub (keys: `edge.keys`; every
+other message: `edge.messages`).
 
 Payloads are ROS 2 messages serialised as plain CDR (little-endian, XCDR1 alignment, the
 4-byte encapsulation header ``00 01 00 00``), so the hub writes the received bytes into MCAP
@@ -11,6 +12,7 @@ buffer with one copy, and decoding returns numpy views over the payload (no per-
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass, field
 from typing import Final
@@ -18,49 +20,9 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
+from edge.cdr import ENCAPSULATION, Reader, align, load_definition, put_string, schema_text
 from edge.errors import WireError
 from ptp.quality import ClockQuality, ClockState
-
-# --- Key space -------------------------------------------------------------------------------
-
-ROOT: Final = "fleetdaq"
-
-
-def data_key(site: str, node: str, stream: str) -> str:
-    return f"{ROOT}/{site}/{node}/data/{stream}"
-
-
-def data_selector(site: str) -> str:
-    return f"{ROOT}/{site}/*/data/*"
-
-
-def alive_key(site: str, node: str) -> str:
-    return f"{ROOT}/{site}/{node}/alive"
-
-
-def alive_selector(site: str) -> str:
-    return f"{ROOT}/{site}/*/alive"
-
-
-def health_key(site: str, node: str) -> str:
-    return f"{ROOT}/{site}/{node}/health"
-
-
-def events_key(site: str, node: str) -> str:
-    return f"{ROOT}/{site}/{node}/events"
-
-
-def events_selector(site: str) -> str:
-    return f"{ROOT}/{site}/*/events"
-
-
-def ack_key(site: str, node: str, stream: str) -> str:
-    return f"{ROOT}/{site}/{node}/ack/{stream}"
-
-
-def ack_selector(site: str, node: str) -> str:
-    return f"{ROOT}/{site}/{node}/ack/*"
-
 
 _U64 = struct.Struct("<Q")
 
@@ -78,72 +40,25 @@ def decode_u64(raw: bytes | None) -> int | None:
     return int(_U64.unpack(raw)[0])
 
 
-def hub_key(site: str, what: str) -> str:
-    return f"{ROOT}/{site}/hub/{what}"
-
-
-def split_data_key(key: str) -> tuple[str, str, str]:
-    """``fleetdaq/<site>/<node>/data/<stream>`` -> (site, node, stream)."""
-    parts = key.split("/")
-    if len(parts) != 5 or parts[0] != ROOT or parts[3] != "data":
-        raise WireError(f"not a data key: {key!r}")
-    return parts[1], parts[2], parts[4]
-
-
-# --- Message definitions (ros2msg, embedded in every MCAP file) -----------------------------
+# --- The message (its definition ships in edge/fleetdaq_msgs/msg/SampleBatch.msg) ---------------
 
 CLOCK_QUALITY_TYPE: Final = "fleetdaq_msgs/msg/ClockQuality"
-CLOCK_QUALITY_MSG: Final = """\
-# Quality of the host clock that stamped a batch, at acquisition.
-uint8 STATE_UNSYNCED=0
-uint8 STATE_LOCKED=1
-uint8 STATE_HOLDOVER=2
-uint8 state
-int64 offset_ns          # host clock offset from the grandmaster (ns), 0 when unknown
-string grandmaster_id    # PTP clockIdentity of the grandmaster, "" when none
-string source            # "ptp4l", "chrony" or "none"
-"""
-
 SAMPLE_BATCH_TYPE: Final = "fleetdaq_msgs/msg/SampleBatch"
-SAMPLE_BATCH_MSG: Final = """\
-# A batch of consecutive scans from one stream of one node. Every channel is sampled once per
-# scan; sample i of channel c is data[i * channel_count + c].
-string node
-string stream
-string[] channel_names
-string[] channel_units
-uint64 sequence              # per stream, +1 per batch, no gaps by construction
-int64 first_sample_time_ns   # UTC (CLOCK_REALTIME), from the clock fit, of scan 0
-float64 sample_period_ns     # as fitted; scan i is at first_sample_time_ns + i * sample_period_ns
-uint32 scan_count
-uint32 channel_count
-fleetdaq_msgs/ClockQuality clock
-uint8[] sample_status        # empty: all valid; else scan_count*channel_count codes (0 = valid)
-float64[] data               # scan_count*channel_count values, scan-major; NaN where not valid
-"""
-
-SEPARATOR: Final = "=" * 80
-SAMPLE_BATCH_SCHEMA: Final = (
-    f"{SAMPLE_BATCH_MSG}{SEPARATOR}\nMSG: fleetdaq_msgs/ClockQuality\n{CLOCK_QUALITY_MSG}"
-)
+load_definition(CLOCK_QUALITY_TYPE)
+load_definition(SAMPLE_BATCH_TYPE)
+SAMPLE_BATCH_SCHEMA: Final = schema_text(SAMPLE_BATCH_TYPE)
 """SampleBatch with its dependency, in the ros2msg concatenated form MCAP readers expect."""
 
+EARLIEST_PLAUSIBLE_NS: Final = 946_684_800_000_000_000
+"""2000-01-01T00:00:00Z: an acquisition time before it comes from a clock that was never set."""
+MAX_AHEAD_NS: Final = 24 * 3600 * 1_000_000_000
+"""How far ahead of the hub's clock an acquisition time may be and still be believed."""
 
-EVENT_TYPE: Final = "fleetdaq_msgs/msg/Event"
-EVENT_MSG: Final = """\
-# A system message (like MODAQ 2's /system_messenger): recorded, logged, alerted on.
-uint8 DEBUG=10
-uint8 INFO=20
-uint8 WARNING=30
-uint8 ERROR=40
-uint8 CRITICAL=50
-int64 time_ns     # UTC ns when it happened
-string node       # who raised it ("hub" for the hub)
-uint8 level       # one of the constants above (Python logging levels)
-string source     # the part that raised it: a stream name, "agent", "recorder", ...
-string tag        # stable identifier of the kind of event, for alert snoozing
-string message    # for people
-"""
+
+def plausible_time(t_ns: int, now_ns: int) -> bool:
+    """Whether a time in a payload can be a real acquisition time (between 2000 and a day
+    ahead of the receiver's clock). MCAP's times are unsigned: a negative one cannot be written."""
+    return EARLIEST_PLAUSIBLE_NS <= t_ns <= now_ns + MAX_AHEAD_NS
 
 
 class SampleStatus:
@@ -157,9 +72,6 @@ class SampleStatus:
     COMM_ERROR: Final = 5  # NACK, CRC mismatch, bus error
     OUT_OF_RANGE: Final = 6
     DEVICE_FAULT: Final = 7
-
-
-ENCAPSULATION: Final = b"\x00\x01\x00\x00"  # CDR_LE
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,24 +103,12 @@ class SampleBatch:
     """(scan_count, channel_count) uint8 codes, or None when every sample is valid."""
 
 
-def _align(n: int, a: int) -> int:
-    return (n + a - 1) & -a
-
-
-def _put_string(out: bytearray, s: str) -> None:
-    raw = s.encode("utf-8") + b"\x00"
-    pad = _align(len(out) - 4, 4) - (len(out) - 4)
-    out += b"\x00" * pad
-    out += struct.pack("<I", len(raw))
-    out += raw
-
-
 def _put_string_seq(out: bytearray, items: tuple[str, ...]) -> None:
-    pad = _align(len(out) - 4, 4) - (len(out) - 4)
+    pad = align(len(out) - 4, 4) - (len(out) - 4)
     out += b"\x00" * pad
     out += struct.pack("<I", len(items))
     for s in items:
-        _put_string(out, s)
+        put_string(out, s)
 
 
 class BatchEncoder:
@@ -221,12 +121,12 @@ class BatchEncoder:
         if len(channel_names) != len(channel_units) or not channel_names:
             raise ValueError("need one unit per channel and at least one channel")
         prefix = bytearray(ENCAPSULATION)
-        _put_string(prefix, node)
-        _put_string(prefix, stream)
+        put_string(prefix, node)
+        put_string(prefix, stream)
         _put_string_seq(prefix, channel_names)
         _put_string_seq(prefix, channel_units)
         # sequence (uint64) comes next: align to 8 relative to the end of the encapsulation.
-        prefix += b"\x00" * (_align(len(prefix) - 4, 8) - (len(prefix) - 4))
+        prefix += b"\x00" * (align(len(prefix) - 4, 8) - (len(prefix) - 4))
         self._prefix = bytes(prefix)
         self.channel_count = len(channel_names)
 
@@ -251,13 +151,13 @@ class BatchEncoder:
         base = len(self._prefix) - 4
         off = base + 32  # uint64 seq, int64 t0, float64 period, uint32 scans, uint32 channels
         off += 1  # clock.state
-        off = _align(off, 8) + 8  # clock.offset_ns
-        off = _align(off, 4) + 4 + len(gm)
-        off = _align(off, 4) + 4 + len(src)
-        status_at = _align(off, 4)
+        off = align(off, 8) + 8  # clock.offset_ns
+        off = align(off, 4) + 4 + len(gm)
+        off = align(off, 4) + 4 + len(src)
+        status_at = align(off, 4)
         off = status_at + 4 + n_status
-        data_len_at = _align(off, 4)
-        data_at = _align(data_len_at + 4, 8)
+        data_len_at = align(off, 4)
+        data_at = align(data_len_at + 4, 8)
         buf = bytearray(4 + data_at + 8 * n)
         buf[: len(self._prefix)] = self._prefix
         p = len(self._prefix)
@@ -272,11 +172,11 @@ class BatchEncoder:
             channels,
             int(clock.state),
         )
-        p = 4 + _align(base + 33, 8)
+        p = 4 + align(base + 33, 8)
         struct.pack_into("<qI", buf, p, clock.offset_ns, len(gm))
         p += 12
         buf[p : p + len(gm)] = gm
-        p = 4 + _align(p - 4 + len(gm), 4)
+        p = 4 + align(p - 4 + len(gm), 4)
         struct.pack_into("<I", buf, p, len(src))
         buf[p + 4 : p + 4 + len(src)] = src
         struct.pack_into("<I", buf, 4 + status_at, n_status)
@@ -289,54 +189,7 @@ class BatchEncoder:
         return buf
 
 
-class _Reader:
-    """Bounds-checked CDR reader: every length is checked against what is left."""
-
-    __slots__ = ("buf", "pos")
-
-    def __init__(self, buf: bytes | bytearray | memoryview) -> None:
-        if len(buf) < 4 or bytes(buf[:2]) != b"\x00\x01":
-            raise WireError("not little-endian CDR (bad encapsulation header)")
-        self.buf = memoryview(buf)
-        self.pos = 4
-
-    def align(self, a: int) -> None:
-        self.pos = 4 + _align(self.pos - 4, a)
-
-    def take(self, n: int) -> memoryview:
-        if n < 0 or self.pos + n > len(self.buf):
-            raise WireError(f"truncated: need {n} bytes at offset {self.pos}, have {len(self.buf)}")
-        out = self.buf[self.pos : self.pos + n]
-        self.pos += n
-        return out
-
-    def unpack(self, fmt: str, size: int, align: int) -> tuple[int | float, ...]:
-        self.align(align)
-        return struct.unpack_from(fmt, self.take(size))
-
-    def u32(self) -> int:
-        return int(self.unpack("<I", 4, 4)[0])
-
-    def string(self) -> str:
-        n = self.u32()
-        if n == 0:
-            raise WireError("string without terminator")
-        raw = bytes(self.take(n))
-        if raw[-1] != 0:
-            raise WireError("string not NUL-terminated")
-        try:
-            return raw[:-1].decode("utf-8")
-        except UnicodeDecodeError as err:
-            raise WireError(f"string not UTF-8: {err}") from None
-
-    def strings(self, limit: int = 4096) -> tuple[str, ...]:
-        n = self.u32()
-        if n > limit:
-            raise WireError(f"{n} strings claimed, limit {limit}")
-        return tuple(self.string() for _ in range(n))
-
-
-def _read_header(r: _Reader) -> BatchHeader:
+def _read_header(r: Reader) -> BatchHeader:
     node = r.string()
     stream = r.string()
     names = r.strings()
@@ -348,6 +201,10 @@ def _read_header(r: _Reader) -> BatchHeader:
     source = r.string()
     if len(names) != channels or len(units) != channels:
         raise WireError(f"{channels} channels but {len(names)} names and {len(units)} units")
+    if scans == 0 or channels == 0:
+        raise WireError(f"an empty batch ({scans} scans x {channels} channels)")
+    if not (math.isfinite(period) and period > 0):
+        raise WireError(f"sample_period_ns is {period!r}, not a positive number")
     try:
         clock_state = ClockState(int(state))
     except ValueError:
@@ -371,13 +228,13 @@ def read_header(payload: bytes | bytearray | memoryview) -> BatchHeader:
 
     Raises WireError for anything that is not a well-formed SampleBatch.
     """
-    r = _Reader(payload)
+    r = Reader(payload)
     header = _read_header(r)
     _array_views(r, header)
     return header
 
 
-def _array_views(r: _Reader, h: BatchHeader) -> tuple[memoryview, memoryview]:
+def _array_views(r: Reader, h: BatchHeader) -> tuple[memoryview, memoryview]:
     n = h.samples
     n_status = r.u32()
     if n_status not in (0, n):
@@ -395,52 +252,10 @@ def _array_views(r: _Reader, h: BatchHeader) -> tuple[memoryview, memoryview]:
 
 def decode_batch(payload: bytes | bytearray | memoryview) -> SampleBatch:
     """Decode a SampleBatch; arrays are read-only numpy views over `payload` (no copy)."""
-    r = _Reader(payload)
+    r = Reader(payload)
     h = _read_header(r)
     status_mv, data_mv = _array_views(r, h)
     shape = (h.scan_count, h.channel_count)
     data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
     status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
     return SampleBatch(h, data, status)
-
-
-# --- Events ------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class Event:
-    time_ns: int
-    node: str
-    level: int
-    source: str
-    tag: str
-    message: str
-
-    @property
-    def level_name(self) -> str:
-        return {10: "debug", 20: "info", 30: "warning", 40: "error", 50: "critical"}.get(
-            self.level, str(self.level)
-        )
-
-
-def encode_event(e: Event) -> bytes:
-    out = bytearray(ENCAPSULATION)
-    out += struct.pack("<q", e.time_ns)
-    _put_string(out, e.node)
-    out += struct.pack("<B", e.level)
-    _put_string(out, e.source)
-    _put_string(out, e.tag)
-    _put_string(out, e.message)
-    return bytes(out)
-
-
-def decode_event(payload: bytes | bytearray | memoryview) -> Event:
-    """Raises WireError for anything that is not a well-formed Event."""
-    r = _Reader(payload)
-    (t,) = r.unpack("<q", 8, 8)
-    node = r.string()
-    (level,) = r.unpack("<B", 1, 1)
-    source, tag, message = r.string(), r.string(), r.string()
-    if r.pos != len(r.buf):
-        raise WireError(f"{len(r.buf) - r.pos} trailing bytes")
-    return Event(int(t), node, int(level), source, tag, message)

@@ -15,54 +15,37 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
-from edge.config import SiteConfig
+from edge.config.site import SiteConfig
 from hub.errors import RouterError
-from hub.events import format_event
-from hub.service import Hub
+from hub.event_log import format_event
+from hub.read_model import HubView
+from hub.runtime import HubRuntime
 
 log = logging.getLogger("fleetdaq.demo")
 
 
-def status_view(h: Hub, elapsed: float) -> Group:
-    """The stream table and the last events under it."""
+def status_view(view: HubView, site: SiteConfig, elapsed: float) -> Group:
+    """The stream table and the last events under it, from a read-model snapshot."""
     events = Table(title="last events", show_header=False, box=None, title_justify="left")
     events.add_column("event", overflow="fold")
-    for e in h.recorder.events.tail(6):
+    for e in view.recent_events[-6:]:
         style = (
             "red" if e.level >= logging.ERROR else "yellow" if e.level >= logging.WARNING else ""
         )
         events.add_row(format_event(e), style=style)
-    return Group(status_table(h, elapsed), events)
+    return Group(status_table(view, site, elapsed), events)
 
 
-def status_table(h: Hub, elapsed: float) -> Table:
-    rec = h.recorder
-    with rec.lock:
-        current = rec.session.current_file
-        closed = len(rec.session.closed)
-        streams = sorted(rec.streams.items())
-        rows = [
-            (
-                s.node,
-                s.stream,
-                s.recorded,
-                s.scan_rate(),
-                s.rate_hz,
-                s.batches,
-                s.samples,
-                s.gaps,
-                s.duplicates,
-            )
-            for _, s in streams
-        ]
-        malformed = rec.malformed
-    with h.nodes.lock:
-        alive = set(h.nodes.alive)
+def status_table(view: HubView, site: SiteConfig, elapsed: float) -> Table:
+    rec = view.recorder
+    alive = {n.node for n in view.nodes if n.alive}
+    current = Path(rec.current_file).name if rec.current_file else "-"
     title = (
-        f"fleetdaq demo · site {h.site.site} · {elapsed:.0f} s · "
-        f"file {current.name if current else '-'} ({closed} closed)"
+        f"fleetdaq demo · site {site.site} · {elapsed:.0f} s · "
+        f"file {current} ({len(rec.files)} closed)"
     )
-    t = Table(title=title, caption=f"malformed payloads: {malformed} · Ctrl-C stops cleanly")
+    caption = f"malformed: {rec.malformed} · refused: {view.refused_total} · Ctrl-C stops cleanly"
+    t = Table(title=title, caption=caption)
     for col in (
         "node",
         "alive",
@@ -76,21 +59,22 @@ def status_table(h: Hub, elapsed: float) -> Table:
         "dups",
     ):
         t.add_column(col, justify="right" if col not in {"node", "stream"} else "left")
-    for node in h.site.nodes:
-        if not any(r[0] == node for r in rows):
+    streams = sorted(view.streams, key=lambda s: (s.node, s.stream))
+    for node in site.nodes:
+        if not any(s.node == node for s in streams):
             t.add_row(node, "yes" if node in alive else "no", "-", "", "", "", "", "", "", "")
-    for node, stream, rec_on, rate, cfg_rate, batches, samples, gaps, dups in rows:
+    for s in streams:
         t.add_row(
-            node,
-            "yes" if node in alive else "[red]no",
-            stream,
-            "yes" if rec_on else "no",
-            f"{rate:,.1f}",
-            f"{cfg_rate:g}" if cfg_rate else "?",
-            f"{batches:,}",
-            f"{samples:,}",
-            f"[red]{gaps}" if gaps else "0",
-            str(dups),
+            s.node,
+            "yes" if s.node in alive else "[red]no",
+            s.stream,
+            "yes" if s.recorded else "no",
+            f"{s.scan_rate:,.1f}",
+            f"{s.rate_hz:g}" if s.rate_hz else "?",
+            f"{s.batches:,}",
+            f"{s.samples:,}",
+            f"[red]{s.gaps}" if s.gaps else "0",
+            str(s.duplicates),
         )
     return t
 
@@ -104,7 +88,7 @@ def _spawn_edges(
         cmd = [
             sys.executable,
             "-m",
-            "hub.cli",
+            "fleetdaq",
             "edge",
             "--config",
             str(config),
@@ -156,22 +140,23 @@ def run_demo(
     if not console.is_terminal:
         console = Console(stderr=True, width=120)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    h = HubRuntime(site, data_dir, [listen] if listen else None)
     try:
-        h = Hub(site, data_dir, [listen] if listen else None)
         h.start()
     except RouterError as err:
         console.print(f"[red]{err}[/red]\nIs another fleetdaq hub running? Try --listen.")
         return 1, {"error": str(err)}
-    endpoint = listen or (h.listen[0] if listen else None)
+    endpoint = listen or None
+    session = h.recorder.session
+    assert session is not None
     # The demo's edges spool under the data folder, so a rerun replays what the last one left.
-    procs = _spawn_edges(
-        site, config, endpoint, h.recorder.session.dir / "logs", data_dir / "spool"
-    )
+    procs = _spawn_edges(site, config, endpoint, session.dir / "logs", data_dir / "spool")
     t0 = time.monotonic()
     died: list[str] = []
+    failed_services: list[tuple[str, str]] = []
     try:
         with Live(
-            status_view(h, 0),
+            status_view(h.snapshot(), site, 0),
             console=console,
             refresh_per_second=2,
             transient=not console.is_terminal,
@@ -179,24 +164,29 @@ def run_demo(
             last_line = 0.0
             while not stop.wait(0.5):
                 elapsed = time.monotonic() - t0
-                live.update(status_view(h, elapsed))
+                live.update(status_view(h.snapshot(), site, elapsed))
                 if not console.is_terminal and elapsed - last_line >= 5:
                     last_line = elapsed
-                    console.print(status_view(h, elapsed))
+                    console.print(status_view(h.snapshot(), site, elapsed))
                 died = [n for n, (p, _) in procs.items() if p.poll() is not None]
-                if died or (duration is not None and elapsed >= duration):
+                failed_services = h.failures()
+                if died or failed_services or (duration is not None and elapsed >= duration):
                     break
     finally:
         failed = _stop_edges(procs)
         h.close()
-    summary = h.recorder.summary()
+    summary = h.summary()
     summary["duration_s"] = round(time.monotonic() - t0, 3)
     summary["edge_failures"] = failed
-    console.print(status_view(h, summary["duration_s"]))
+    console.print(status_view(h.snapshot(), site, summary["duration_s"]))
     console.print(
-        f"recorded into {h.recorder.session.dir} ({len(summary['files'])} file(s)); "
-        f"edge logs in {h.recorder.session.dir / 'logs'}"
+        f"recorded into {session.dir} ({len(summary['files'])} file(s)); "
+        f"edge logs in {session.dir / 'logs'}"
     )
+    if failed_services:
+        for name, why in failed_services:
+            console.print(f"[red]hub service {name} failed: {why}")
+        return 3, summary
     if died or failed:
         console.print(f"[red]edge process(es) failed: {', '.join(failed or died)}")
         return 1, summary

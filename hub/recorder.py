@@ -1,21 +1,23 @@
-"""The recorder service: data keys -> accounting -> MCAP session -> acks.
+"""The recorder service: data keys -> checks -> accounting -> MCAP session -> acks.
 
-Zenoh delivers samples on its own threads; the callback only copies the payload (and the
-edge's `floor` attachment) and stamps the hub receive time into a queue. One writer thread
-validates each batch header (bounds-checked, no array decode), drops duplicates, writes the
-received bytes untouched into the session, and at least every `flush_interval_s` closes the
-chunk in progress, fsyncs, and acks per stream the highest contiguous sequence now durable.
+Zenoh delivers samples on its own threads. The data callback looks the key up among the
+streams the site file defines (anything else is refused there, counted per key, and never
+queued), checks that stream's share of the receive queue, copies the payload and stamps the
+hub receive time. One writer thread checks each batch completely (every length, the
+node/stream it claims, a plausible acquisition time), drops duplicates, writes the received
+bytes untouched into the session, and at least every `flush_interval_s` closes the chunk in
+progress, fsyncs, and acks per stream the highest contiguous sequence now durable
+(`hub.stream_stats`). Events come from the event bus (this service is one of its
+subscribers) and node health from the node watch; both are written on the same thread.
 
-Delivery bookkeeping per stream: `contiguous` is the highest sequence such that every
-sequence from the stream's base up to it is written; `pending` holds sequences written above
-a hole (waiting for the edge to replay the hole). The edge's `floor` says it no longer holds
-anything below it: holes below the floor can never be filled and are counted as `lost`,
-with an event. A write error (a full disk) abandons the file, rolls every stream back to its
-last durable (acked) sequence, raises an event and retries; the edges keep their spools
-until acks resume, then replay.
+No single message can stop the writer: anything unexpected while handling one abandons the
+open file (so what is closed stays readable), rolls the streams back to their last ack,
+raises an event, and goes on. If the writer thread dies anyway, `failure()` says so and the
+hub exits non-zero. A write error (a full disk) abandons the file, rolls every stream back,
+raises an event and retries; the edges keep their spools until acks resume, then replay.
 
 Stopping undeclares the subscribers first, then drains the queue, then closes files, so every
-received batch is on disk when `close()` returns.
+received batch is on disk when `stop()` returns.
 """
 
 from __future__ import annotations
@@ -25,239 +27,194 @@ import logging
 import queue
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from edge.config import SiteConfig, effective_yaml
+from edge.cdr import encode
+from edge.config.site import SiteConfig, effective_yaml
 from edge.errors import WireError
-from edge.wire import (
-    EVENT_TYPE,
-    Event,
-    ack_key,
-    data_selector,
-    decode_event,
-    decode_u64,
-    encode_event,
-    encode_u64,
-    events_selector,
-    read_header,
-    split_data_key,
-)
-from hub.events import EventLog
+from edge.keys import SiteKeys
+from edge.messages import EVENT_TYPE, Event
+from edge.wire import decode_u64, encode_u64, plausible_time, read_header
+from hub.bus import EventBus
+from hub.read_model import ReadModel, RecorderView
+from hub.refused import RefusedKeys
+from hub.router import Router
 from hub.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
+from hub.stream_stats import StreamStats
 
 log = logging.getLogger("fleetdaq.recorder")
 
 _STOP = object()
-_DATA, _EVENT = 0, 1
+_DATA, _EVENT, _MESSAGE = 0, 1, 2
 _RETRY_AFTER_ERROR_S = 2.0
 _MAX_HELD_EVENTS = 10_000
-
-
-@dataclass(slots=True)
-class StreamStats:
-    """Per-stream delivery accounting from sequence numbers."""
-
-    node: str
-    stream: str
-    recorded: bool
-    rate_hz: float | None = None
-    batches: int = 0
-    scans: int = 0
-    samples: int = 0
-    duplicates: int = 0
-    late: int = 0
-    """Batches that arrived after a higher sequence (replayed from the edge's spool)."""
-    lost: int = 0
-    """Sequences the edge no longer holds and this hub never received: gone for good."""
-    deferred: int = 0
-    """Batches received while the disk refused writes (not acked: the edge sends them again)."""
-    first_sequence: int | None = None
-    last_sequence: int | None = None
-    contiguous: int | None = None
-    durable: int | None = None
-    """Highest sequence acked (written, flushed, fsynced)."""
-    acked_sent: int | None = None
-    pending: set[int] = field(default_factory=set)
-    acq_gaps: int = 0
-    """Breaks in acquisition time between consecutive batches (e.g. an edge restart)."""
-    acq_gap_s: float = 0.0
-    last_receive_ns: int = 0
-    _next_t: float | None = None
-    _in_order: bool = False
-    _recent: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=64))
-
-    @property
-    def missing(self) -> int:
-        """Holes below the highest sequence received, still waiting for a replay."""
-        if self.contiguous is None or self.last_sequence is None:
-            return 0
-        return self.last_sequence - self.contiguous - len(self.pending)
-
-    @property
-    def gaps(self) -> int:
-        """Sequences not recorded: lost for good plus holes not (yet) filled."""
-        return self.lost + self.missing
-
-    def offer(self, seq: int, floor: int | None) -> tuple[bool, int]:
-        """Account for a batch. Returns (is new, newly lost sequences)."""
-        newly_lost = 0
-        if self.contiguous is None:
-            # First batch this hub sees: below the edge's floor everything was acked before
-            # (by an earlier hub run) or dropped and reported by the edge.
-            base = floor if floor is not None and floor <= seq else seq
-            self.contiguous = self.durable = base - 1
-            self.first_sequence = base
-        elif floor is not None and floor > self.contiguous + 1:
-            below = sum(1 for p in self.pending if p < floor)
-            newly_lost = floor - 1 - self.contiguous - below
-            self.lost += newly_lost
-            self.contiguous = floor - 1
-            self._absorb()
-        if seq <= self.contiguous or seq in self.pending:
-            self.duplicates += 1
-            return False, newly_lost
-        if self.last_sequence is not None and seq < self.last_sequence:
-            self.late += 1
-        self._in_order = self.last_sequence is not None and seq == self.last_sequence + 1
-        self.pending.add(seq)
-        self._absorb()
-        if self.last_sequence is None or seq > self.last_sequence:
-            self.last_sequence = seq
-        return True, newly_lost
-
-    def _absorb(self) -> None:
-        assert self.contiguous is not None
-        while self.contiguous + 1 in self.pending:
-            self.pending.remove(self.contiguous + 1)
-            self.contiguous += 1
-        if self.pending:  # a floor jump can leave pending entries below the new mark
-            self.pending = {p for p in self.pending if p > self.contiguous}
-
-    def count(
-        self, seq: int, scans: int, samples: int, recv_ns: int, t0: int, period_ns: float
-    ) -> float | None:
-        """Count an accepted batch; return the acquisition gap (s) before it, if any."""
-        self.batches += 1
-        self.scans += scans
-        self.samples += samples
-        self.last_receive_ns = recv_ns
-        self._recent.append((recv_ns, self.scans))
-        gap = None
-        if self._next_t is not None and self._in_order:
-            missing_s = (t0 - self._next_t) / 1e9
-            if missing_s > max(2 * period_ns / 1e9, 0.02):
-                gap = missing_s
-                self.acq_gaps += 1
-                self.acq_gap_s += missing_s
-        if seq == self.last_sequence:
-            self._next_t = t0 + scans * period_ns
-        return gap
-
-    def rollback(self) -> None:
-        """What was written since the last durable flush may be lost: expect it again."""
-        self.contiguous = self.durable
-        self.pending.clear()
-
-    def scan_rate(self) -> float:
-        """Scans per second over the recent batches."""
-        if len(self._recent) < 2:
-            return 0.0
-        (t0, n0), (t1, n1) = self._recent[0], self._recent[-1]
-        return (n1 - n0) / ((t1 - t0) / 1e9) if t1 > t0 else 0.0
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            "node": self.node,
-            "stream": self.stream,
-            "recorded": self.recorded,
-            "batches": self.batches,
-            "scans": self.scans,
-            "samples": self.samples,
-            "gaps": self.gaps,
-            "lost": self.lost,
-            "missing": self.missing,
-            "duplicates": self.duplicates,
-            "late": self.late,
-            "deferred": self.deferred,
-            "acquisition_gaps": self.acq_gaps,
-            "acquisition_gap_s": round(self.acq_gap_s, 3),
-            "first_sequence": self.first_sequence,
-            "last_sequence": self.last_sequence,
-            "acked": self.durable,
-        }
+_VIEW_INTERVAL_S = 0.25
+_REPORT_EVERY_S = 60.0
 
 
 class Recorder:
-    """Subscribes to every data and event key of the site and records them."""
+    name = "recorder"
 
-    def __init__(self, session: Any, site: SiteConfig, data_dir: Path) -> None:
+    def __init__(
+        self,
+        router: Router,
+        site: SiteConfig,
+        data_dir: Path,
+        bus: EventBus,
+        model: ReadModel,
+        refused: RefusedKeys,
+        max_queued_bytes: int = 512 * 1024 * 1024,
+    ) -> None:
+        self.router = router
         self.site = site
         self.cfg = site.hub.recorder
         self.data_dir = data_dir
-        self.select = StreamSelector(self.cfg.include, self.cfg.exclude)
-        self.streams: dict[tuple[str, str], StreamStats] = {}
-        self.malformed = 0
-        self.malformed_by_key: dict[str, int] = {}
+        self.bus = bus
+        self.model = model
+        self.keys = SiteKeys(site.site)
+        select = StreamSelector(self.cfg.include, self.cfg.exclude)
+        names = [(n, s) for n, node in site.nodes.items() for s in node.streams]
+        budget = max(4 * 1024 * 1024, max_queued_bytes // max(1, len(names)))
+        self.routes: dict[str, StreamStats] = {}
+        for node, stream in names:
+            st = StreamStats(
+                node, stream, select(node, stream), site.nodes[node].streams[stream].rate_hz
+            )
+            st.budget_bytes = budget
+            self.routes[self.keys.data(node, stream)] = st
+        self.streams = {(st.node, st.stream): st for st in self.routes.values()}
+        self.refused = refused
         self.write_errors = 0
+        self.writer_errors = 0
         self.events_not_recorded = 0
-        self.max_queued_bytes = 512 * 1024 * 1024
-        self.queued_bytes = 0
-        """Payload bytes received and not yet written (approximate: two threads update it)."""
-        self.overflow = 0
-        """Batches dropped on arrival because the queue was over `max_queued_bytes`."""
+        self.messages_not_recorded = 0
         self.lock = threading.Lock()
+        """Held by the writer thread while it handles an item; `summary()` takes it."""
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._zsession = session
-        self.session = RecordingSession(
-            data_dir, site.site, list(site.nodes), self.cfg, effective_yaml(site), time.time_ns()
-        )
-        self.events = EventLog(data_dir / "events.log")
+        self.session: RecordingSession | None = None
         self._thread = threading.Thread(target=self._writer, name="recorder", daemon=True)
         self._subs: list[Any] = []
-        self._closed = False
+        self._stopped = False
+        self._died: str | None = None
         self._broken_until = 0.0
         self._held_events: list[tuple[bytes, int, int]] = []
         self._last_flush = time.monotonic()
+        self._last_view = 0.0
+        self._implausible_reported: dict[tuple[str, str], float] = {}
+        self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=100_000)
+
+    # --- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> None:
+        self.session = RecordingSession(
+            self.data_dir,
+            self.site.site,
+            list(self.site.nodes),
+            self.cfg,
+            effective_yaml(self.site),
+            time.time_ns(),
+        )
+        if self.cfg.recover_on_start:
+            self._recover_crashed_files()
+        self._publish_view(force=True)
         self._thread.start()
-        put = self._queue.put
-
-        limit = self.max_queued_bytes
+        routes, refused, put = self.routes, self.refused, self._queue.put
 
         def on_data(sample: Any) -> None:
-            # Bounded: past the limit a batch is dropped here, counted, and not acked, so the
-            # edge replays it. Memory stays bounded when the disk is slower than the network.
-            if self.queued_bytes > limit:
-                self.overflow += 1
+            key = str(sample.key_expr)
+            st = routes.get(key)
+            if st is None:
+                refused.refuse(key, "data")
+                return
+            # Bounded per stream: past its share a batch is dropped here, counted, and not
+            # acked, so the edge replays it; one stream flooding cannot starve the others.
+            if st.queued_bytes > st.budget_bytes:
+                st.overflow += 1
                 return
             att = sample.attachment
             floor = decode_u64(att.to_bytes()) if att is not None else None
             payload = sample.payload.to_bytes()
-            self.queued_bytes += len(payload)
-            put((_DATA, str(sample.key_expr), payload, time.time_ns(), floor))
+            st.queued_bytes += len(payload)
+            put((_DATA, st, payload, time.time_ns(), floor))
 
-        def on_event(sample: Any) -> None:
-            put((_EVENT, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(), None))
+        self._subs = [self.router.session.declare_subscriber(self.keys.all_data, on_data)]
 
-        site = self.site.site
-        self._subs = [
-            self._zsession.declare_subscriber(data_selector(site), on_data),
-            self._zsession.declare_subscriber(events_selector(site), on_event),
-        ]
+    def _recover_crashed_files(self) -> None:
+        """Turn ``*.mcap.active`` files left by a crash into valid files, with an event each."""
+        from hub.verify import recover_file, refresh_metadata
 
-    def emit(self, level: int, source: str, tag: str, message: str) -> None:
-        """Raise a hub event: recorded in the session, logged, shown, alerted on."""
-        now = time.time_ns()
-        e = Event(now, "hub", level, source, tag, message)
-        self._queue.put((_EVENT, "", encode_event(e), now, None))
+        assert self.session is not None
+        own = self.session.dir
+        for f in sorted(self.data_dir.glob("*/*.mcap.active")):
+            if f.parent == own:
+                continue
+            try:
+                report = recover_file(f)
+            except OSError as err:
+                self.bus.emit(
+                    logging.ERROR, "recorder", "recover_failed", f"could not recover {f}: {err}"
+                )
+                continue
+            refresh_metadata(f.parent)
+            self.bus.emit(
+                logging.WARNING,
+                "recorder",
+                "recovered",
+                f"recovered a file left by a crash: {f.parent.name}/{report.line()}",
+                file=str(f),
+            )
 
-    # --- the writer thread ------------------------------------------------------------------
+    def record(
+        self, topic: str, payload: bytes, publish_ns: int, recv_ns: int, msgtype: str
+    ) -> None:
+        """Record a message other than a batch (node health...) whose payload was checked."""
+        self._queue.put((_MESSAGE, topic, payload, publish_ns, recv_ns, msgtype))
+
+    def _on_event(self, e: Event) -> None:
+        """A bus subscriber: the event goes to the writer thread's queue."""
+        self._queue.put((_EVENT, encode(e), e.time_ns, time.time_ns()))
+
+    def stop(self) -> None:
+        """Stop receiving, write everything received, close the files. Idempotent."""
+        if self._stopped or self.session is None:
+            return
+        self._stopped = True
+        for sub in self._subs:
+            sub.undeclare()
+        self._subs = []
+        self.bus.emit(logging.INFO, "hub", "stopped", "hub stopping: closing files")
+        self._bus_sub.flush()
+        if self._thread.is_alive():
+            self._queue.put(_STOP)
+            self._thread.join()
+        with self.lock:
+            self._drain()
+            self._flush_and_ack()
+            self._guarded("closing the session", self.session.close)
+            self._publish_view(force=True, state="stopped")
+
+    def failure(self) -> str | None:
+        return self._died
+
+    # --- the writer thread ----------------------------------------------------------------------
 
     def _writer(self) -> None:
+        try:
+            self._writer_loop()
+        except BaseException as err:
+            self._died = f"the recorder's writer thread died: {err!r}"
+            log.critical("%s", self._died, exc_info=True)
+            self._publish_view(force=True, state="failed")
+            self.bus.emit(
+                logging.CRITICAL,
+                "recorder",
+                "writer_died",
+                f"{self._died}; nothing more is recorded or acked (edges keep spooling); the "
+                "hub exits so that its supervisor restarts it",
+            )
+
+    def _writer_loop(self) -> None:
         get = self._queue.get
         interval = self.cfg.flush_interval_s
         while True:
@@ -269,14 +226,54 @@ class Recorder:
                 return
             with self.lock:
                 if item is not None:
-                    kind, key, payload, recv_ns, floor = item
-                    if kind == _DATA:
-                        self.queued_bytes -= len(payload)
-                        self._record(key, payload, recv_ns, floor)
-                    else:
-                        self._record_event(key, payload, recv_ns)
+                    self._handle(item)
                 if time.monotonic() - self._last_flush >= interval:
                     self._flush_and_ack()
+                self._publish_view()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if item is not _STOP:
+                self._handle(item)
+
+    def _handle(self, item: tuple[Any, ...]) -> None:
+        try:
+            kind = item[0]
+            if kind == _DATA:
+                _, st, payload, recv_ns, floor = item
+                st.queued_bytes -= len(payload)
+                self._record(st, payload, recv_ns, floor)
+            elif kind == _EVENT:
+                self._record_event(*item[1:])
+            else:
+                self._record_message(*item[1:])
+        except Exception as err:  # no single message may stop the writer
+            self._unexpected(err)
+
+    def _unexpected(self, err: Exception) -> None:
+        """Something a message did that was not foreseen: the open file may hold half a
+        record now, so it is abandoned (as after a write error) and the streams roll back to
+        their last ack; the edges send the rest again."""
+        self.writer_errors += 1
+        log.error("recorder: unexpected error handling a message", exc_info=True)
+        assert self.session is not None
+        abandoned = self.session.abandon()
+        for st in self.streams.values():
+            st.rollback()
+        if self.writer_errors <= 10 or self.writer_errors % 100 == 0:
+            kept = f"; abandoned {abandoned.name} (fleetdaq verify --recover)" if abandoned else ""
+            self.bus.emit(
+                logging.ERROR,
+                "recorder",
+                "writer_error",
+                f"unexpected error handling a message: {err!r}{kept}; recording goes on "
+                f"({self.writer_errors} so far)",
+                errors=self.writer_errors,
+            )
 
     def _writable(self) -> bool:
         return time.monotonic() >= self._broken_until
@@ -291,6 +288,7 @@ class Recorder:
             return False
 
     def _write_failed(self, what: str, err: OSError) -> None:
+        assert self.session is not None
         self.write_errors += 1
         first = self._broken_until == 0.0
         self._broken_until = time.monotonic() + _RETRY_AFTER_ERROR_S
@@ -299,13 +297,14 @@ class Recorder:
             st.rollback()
         if first:
             kept = f"abandoned {abandoned.name} (fleetdaq verify --recover); " if abandoned else ""
-            full = err.errno in (errno.ENOSPC, errno.EDQUOT)
-            self._event_now(
+            full = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+            self.bus.emit(
                 logging.CRITICAL if full else logging.ERROR,
                 "recorder",
                 "disk_full" if full else "write_error",
                 f"{what} failed: {err}; {kept}not acking, so edges keep spooling; "
                 f"retrying every {_RETRY_AFTER_ERROR_S:g} s",
+                errno=err.errno or 0,
             )
 
     def _resumed(self) -> None:
@@ -314,36 +313,32 @@ class Recorder:
             held, self._held_events = self._held_events, []
             for payload, time_ns, recv_ns in held:
                 self._write_event(payload, time_ns, recv_ns)
-            self._event_now(
+            self.bus.emit(
                 logging.WARNING,
                 "recorder",
                 "write_resumed",
                 "writing again; edges replay what was not acked",
             )
 
-    def _record_event(self, key: str, payload: bytes, recv_ns: int) -> None:
-        try:
-            e = decode_event(payload)
-        except WireError as err:
-            self._malformed(key or "hub/events", err)
-            return
-        self.events.add(e)
-        if self._writable() and self._write_event(payload, e.time_ns, recv_ns):
+    def _record_event(self, payload: bytes, time_ns: int, recv_ns: int) -> None:
+        if self._writable() and self._write_event(payload, time_ns, recv_ns):
             return
         # Kept until writing resumes, so the recording still tells what happened. Past the
         # bound they are still in events.log and counted here.
         if len(self._held_events) < _MAX_HELD_EVENTS:
-            self._held_events.append((payload, e.time_ns, recv_ns))
+            self._held_events.append((payload, time_ns, recv_ns))
         else:
             self.events_not_recorded += 1
 
     def _write_event(self, payload: bytes, time_ns: int, recv_ns: int) -> bool:
+        assert self.session is not None
+        publish = time_ns if plausible_time(time_ns, recv_ns) else recv_ns
         if not self._guarded(
             "writing an event",
             self.session.write,
             EVENTS_TOPIC,
             payload,
-            time_ns,
+            publish,
             recv_ns,
             EVENT_TYPE,
         ):
@@ -351,73 +346,117 @@ class Recorder:
         self._resumed()
         return True
 
-    def _malformed(self, key: str, err: WireError) -> None:
-        self.malformed += 1
-        self.malformed_by_key[key] = self.malformed_by_key.get(key, 0) + 1
-        if self.malformed_by_key[key] == 1:
-            log.warning("malformed payload on %s: %s", key, err)
+    def _record_message(
+        self, topic: str, payload: bytes, publish_ns: int, recv_ns: int, msgtype: str
+    ) -> None:
+        assert self.session is not None
+        if not self._writable():
+            self.messages_not_recorded += 1
+            return
+        publish = publish_ns if plausible_time(publish_ns, recv_ns) else recv_ns
+        if self._guarded("writing", self.session.write, topic, payload, publish, recv_ns, msgtype):
+            self._resumed()
+        else:
+            self.messages_not_recorded += 1
 
-    def _record(self, key: str, payload: bytes, recv_ns: int, floor: int | None) -> None:
+    def _malformed(self, st: StreamStats, err: WireError) -> None:
+        st.malformed += 1
+        if st.malformed == 1 or st.malformed % 1000 == 0:
+            self.bus.emit(
+                logging.WARNING,
+                "recorder",
+                "malformed",
+                f"{st.node}/{st.stream}: refused a payload that is not a valid batch of this "
+                f"stream ({err}); {st.malformed} so far",
+                node=st.node,
+                stream=st.stream,
+                count=st.malformed,
+            )
+
+    def _record(self, st: StreamStats, payload: bytes, recv_ns: int, floor: int | None) -> None:
+        assert self.session is not None
+        node, stream = st.node, st.stream
         try:
-            _, node, stream = split_data_key(key)
             h = read_header(payload)
             if (h.node, h.stream) != (node, stream):
                 raise WireError(f"payload says {h.node}/{h.stream}, key says {node}/{stream}")
         except WireError as err:
-            self._malformed(key, err)
+            self._malformed(st, err)
             return
-        stats = self.streams.get((node, stream))
-        if stats is None:
-            cfg = self.site.nodes.get(node)
-            rate = cfg.streams[stream].rate_hz if cfg and stream in cfg.streams else None
-            stats = StreamStats(node, stream, self.select(node, stream), rate)
-            self.streams[(node, stream)] = stats
-            if floor is None and h.sequence != 0:
-                self._event_now(
-                    logging.WARNING,
-                    "recorder",
-                    "late_start",
-                    f"{node}/{stream} first seen at sequence {h.sequence} with no spool floor: "
-                    "batches before it were not received by this hub",
-                )
+        if st.contiguous is None and floor is None and h.sequence != 0:
+            self.bus.emit(
+                logging.WARNING,
+                "recorder",
+                "late_start",
+                f"{node}/{stream} first seen at sequence {h.sequence} with no spool floor: "
+                "batches before it were not received by this hub",
+                node=node,
+                stream=stream,
+                sequence=h.sequence,
+            )
         if not self._writable():
-            stats.deferred += 1
+            st.deferred += 1
             return
-        is_new, newly_lost = stats.offer(h.sequence, floor)
+        is_new, newly_lost = st.offer(h.sequence, floor)
         if newly_lost:
-            self._event_now(
+            self.bus.emit(
                 logging.ERROR,
                 "recorder",
                 "lost",
                 f"{node}/{stream}: {newly_lost} batch(es) below sequence {floor} were never "
                 "received and the edge no longer holds them",
+                node=node,
+                stream=stream,
+                lost=newly_lost,
+                floor=floor or 0,
             )
         if not is_new:
             return
-        if stats.recorded and not self._guarded(
-            "writing",
-            self.session.write,
-            topic_of(node, stream),
-            payload,
-            h.first_sample_time_ns,
-            recv_ns,
+        publish = h.first_sample_time_ns
+        if not plausible_time(publish, recv_ns):
+            publish = recv_ns
+            self._implausible(st, h.first_sample_time_ns)
+        if st.recorded and not self._guarded(
+            "writing", self.session.write, topic_of(node, stream), payload, publish, recv_ns
         ):
-            stats.deferred += 1
+            st.deferred += 1
             return
         self._resumed()
-        gap = stats.count(
+        gap = st.count(
             h.sequence, h.scan_count, h.samples, recv_ns, h.first_sample_time_ns, h.sample_period_ns
         )
         if gap is not None:
-            self._event_now(
+            self.bus.emit(
                 logging.WARNING,
                 "recorder",
                 "acquisition_gap",
                 f"{node}/{stream}: {gap:.3f} s without scans before sequence {h.sequence} "
                 "(the edge was not acquiring)",
+                node=node,
+                stream=stream,
+                gap_s=round(gap, 6),
+            )
+
+    def _implausible(self, st: StreamStats, t_ns: int) -> None:
+        st.implausible_times += 1
+        now = time.monotonic()
+        last = self._implausible_reported.get((st.node, st.stream))
+        if last is None or now - last >= _REPORT_EVERY_S:
+            self._implausible_reported[(st.node, st.stream)] = now
+            self.bus.emit(
+                logging.ERROR,
+                "recorder",
+                "implausible_time",
+                f"{st.node}/{st.stream}: acquisition time {t_ns} ns cannot be true (is the "
+                "edge's clock set?); recorded with the hub's receive time as publish time "
+                f"({st.implausible_times} so far)",
+                node=st.node,
+                stream=st.stream,
+                time_ns=t_ns,
             )
 
     def _flush_and_ack(self) -> None:
+        assert self.session is not None
         self._last_flush = time.monotonic()
         if not self._writable():
             return
@@ -426,55 +465,66 @@ class Recorder:
                 return
         elif not self._guarded("flushing", self.session.flush):
             return
+        put = self.router.session.put
         for st in self.streams.values():
             st.durable = st.contiguous
             if st.durable is not None and st.durable >= 0 and st.durable != st.acked_sent:
-                self._zsession.put(
-                    ack_key(self.site.site, st.node, st.stream), encode_u64(st.durable)
-                )
+                put(self.keys.ack(st.node, st.stream), encode_u64(st.durable))
                 st.acked_sent = st.durable
 
-    def _event_now(self, level: int, source: str, tag: str, message: str) -> None:
-        """A hub event raised on the writer thread itself (lock held): record it directly."""
-        now = time.time_ns()
-        payload = encode_event(Event(now, "hub", level, source, tag, message))
-        self._record_event("", payload, now)
+    def _publish_view(self, force: bool = False, state: str | None = None) -> None:
+        now = time.monotonic()
+        if not force and now - self._last_view < _VIEW_INTERVAL_S:
+            return
+        self._last_view = now
+        s = self.session
+        if state is None:
+            state = "recording" if self._writable() else "disk_error"
+        current = s.current_file if s is not None else None
+        size = s.current_size() if s is not None else 0
+        self.model.put("streams", tuple(st.view() for st in self.streams.values()))
+        self.model.put(
+            "recorder",
+            RecorderView(
+                state=state,
+                session=s.name if s is not None else "",
+                session_dir=str(s.dir) if s is not None else "",
+                current_file=str(current) if current is not None else "",
+                current_file_bytes=size,
+                files=tuple(str(p) for p in s.files()) if s is not None else (),
+                abandoned_files=tuple(str(p) for p in s.abandoned) if s is not None else (),
+                write_errors=self.write_errors,
+                writer_errors=self.writer_errors,
+                malformed=sum(st.malformed for st in self.streams.values()),
+                overflow=sum(st.overflow for st in self.streams.values()),
+                queued_bytes=sum(st.queued_bytes for st in self.streams.values()),
+                events_not_recorded=self.events_not_recorded,
+            ),
+        )
 
-    # --- control --------------------------------------------------------------------------------
+    # --- control ---------------------------------------------------------------------------------
 
     def split(self) -> None:
         with self.lock:
+            assert self.session is not None
             self._guarded("closing a file", self.session.split)
-
-    def close(self) -> None:
-        """Stop receiving, write everything received, close the files. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        for sub in self._subs:
-            sub.undeclare()
-        self._subs = []
-        if self._thread.is_alive():
-            self._queue.put(_STOP)
-            self._thread.join()
-        with self.lock:
-            self._flush_and_ack()
-            self._guarded("closing the session", self.session.close)
-        self.events.close()
 
     def summary(self) -> dict[str, Any]:
         with self.lock:
+            s = self.session
+            assert s is not None
             return {
-                "session": str(self.session.dir),
-                "files": [str(p) for p in self.session.files()],
-                "abandoned_files": [str(p) for p in self.session.abandoned],
-                "streams": {f"{k[0]}/{k[1]}": s.summary() for k, s in sorted(self.streams.items())},
-                "malformed": self.malformed,
-                "write_errors": self.write_errors,
-                "overflow": self.overflow,
-                "events_not_recorded": self.events_not_recorded,
-                "events": {
-                    logging.getLevelName(level).lower(): n
-                    for level, n in sorted(self.events.counts.items())
+                "session": str(s.dir),
+                "files": [str(p) for p in s.files()],
+                "abandoned_files": [str(p) for p in s.abandoned],
+                "streams": {
+                    f"{k[0]}/{k[1]}": st.summary() for k, st in sorted(self.streams.items())
                 },
+                "malformed": sum(st.malformed for st in self.streams.values()),
+                "write_errors": self.write_errors,
+                "writer_errors": self.writer_errors,
+                "overflow": sum(st.overflow for st in self.streams.values()),
+                "refused": self.refused.total,
+                "refused_keys": dict(self.refused.counts),
+                "events_not_recorded": self.events_not_recorded,
             }

@@ -22,8 +22,9 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from edge import __version__
-from edge.config import RecorderConfig
-from edge.wire import EVENT_MSG, EVENT_TYPE, SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+from edge.config.hub import RecorderConfig
+from edge.messages import SCHEMAS as MESSAGE_SCHEMAS
+from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
 
 log = logging.getLogger("fleetdaq.recorder")
 
@@ -33,7 +34,7 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 ACTIVE_SUFFIX = ".active"
-SCHEMAS = {SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA, EVENT_TYPE: EVENT_MSG}
+SCHEMAS = {SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA, **MESSAGE_SCHEMAS}
 """Every message type the hub records, with its ros2msg definition (embedded per file)."""
 EVENTS_TOPIC = "/events"
 
@@ -45,6 +46,11 @@ def session_name(now_ns: int) -> str:
 
 def topic_of(node: str, stream: str) -> str:
     return f"/{node}/{stream}"
+
+
+def health_topic(node: str) -> str:
+    """Where a node's health is recorded (``/hub/health`` for the hub's own)."""
+    return f"/{node}/health"
 
 
 class StreamSelector:
@@ -160,6 +166,16 @@ class RecordingSession:
     @property
     def current_file(self) -> Path | None:
         return self._file.active if self._file else None
+
+    def current_size(self) -> int:
+        """Bytes written to the open file so far (0 when none is open)."""
+        f = self._file
+        if f is None:
+            return 0
+        try:
+            return f.fh.tell()
+        except (OSError, ValueError):
+            return 0
 
     def _open(self, now_ns: int) -> _OpenFile:
         path = self.dir / f"{self.name}_{self._index:04d}.mcap"

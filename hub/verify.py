@@ -253,19 +253,33 @@ def recover_file(path: Path) -> FileReport:
 
 
 def verify_path(path: Path, recover: bool) -> list[FileReport]:
-    """Check every MCAP file of a session folder (or one file); recover ``.active`` ones."""
-    if path.is_dir():
-        files = sorted(path.glob("*.mcap")) + sorted(path.glob("*.mcap" + ACTIVE_SUFFIX))
-    else:
-        files = [path]
+    """Check every MCAP file of one file, a session folder, or a data root whose session
+    folders hold them; recover ``.active`` ones."""
+    if not path.is_dir():
+        return _verify_files([path], recover, None)
+    if _mcap_files(path):
+        return _verify_files(_mcap_files(path), recover, path)
+    reports: list[FileReport] = []
+    for session in sorted(p for p in path.iterdir() if p.is_dir()):
+        files = _mcap_files(session)
+        if files:
+            reports += _verify_files(files, recover, session)
+    return reports
+
+
+def _mcap_files(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*.mcap")) + sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX))
+
+
+def _verify_files(files: list[Path], recover: bool, folder: Path | None) -> list[FileReport]:
     reports: list[FileReport] = []
     for f in files:
         if f.name.endswith(ACTIVE_SUFFIX):
             reports.append(recover_file(f) if recover else scan_active(f))
         else:
             reports.append(check_file(f))
-    if recover and path.is_dir() and any(r.status == "recovered" for r in reports):
-        refresh_metadata(path)
+    if recover and folder is not None and any(r.status == "recovered" for r in reports):
+        refresh_metadata(folder)
     return reports
 
 

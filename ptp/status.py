@@ -8,7 +8,6 @@ batch carries on the wire.
 from __future__ import annotations
 
 import datetime as dt
-import re
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from typing import Any, Final
@@ -243,7 +242,6 @@ def _age(ns: int | None) -> str:
 STATE_TAGS: Final = {s: f"clock_{s.value}" for s in SyncState}
 """Event tag for entering each state: "clock_locked", "clock_holdover", "clock_freerun"."""
 GRANDMASTER_CHANGED: Final = "grandmaster_changed"
-_GM_CHANGE = re.compile(r"grandmaster changed from (\S+) to (\S+)")
 
 
 def state_of_tag(tag: str) -> SyncState | None:
@@ -258,11 +256,3 @@ def grandmaster_change_message(old: str, new: str, status: TimeStatus) -> str:
         f"grandmaster changed from {old or '-'} to {new or '-'} "
         f"(state {status.state.value}, offset {format_ns(status.offset_ns)})"
     )
-
-
-def parse_grandmaster_change(message: str) -> tuple[str, str] | None:
-    m = _GM_CHANGE.search(message)
-    if m is None:
-        return None
-    old, new = m.groups()
-    return ("" if old == "-" else old), ("" if new == "-" else new)

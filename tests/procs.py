@@ -36,7 +36,7 @@ class Proc:
         self.log_path = log
         self._log: IO[bytes] = log.open("wb")
         self.popen = subprocess.Popen(
-            [sys.executable, "-m", "hub.cli", *args],
+            [sys.executable, "-m", "fleetdaq", *args],
             cwd=REPO,
             stdout=self._log,
             stderr=subprocess.STDOUT,

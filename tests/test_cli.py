@@ -33,7 +33,7 @@ nodes:
 
 def _fleetdaq(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "hub.cli", *args],
+        [sys.executable, "-m", "fleetdaq", *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -70,7 +70,7 @@ def test_demo_runs_unattended_and_prints_a_json_summary(site: Path, tmp_path: Pa
 def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_path: Path):
     rec = tmp_path / "rec"
     p = subprocess.Popen(
-        [sys.executable, "-m", "hub.cli", "demo", "--config", str(site), "--data", str(rec)],
+        [sys.executable, "-m", "fleetdaq", "demo", "--config", str(site), "--data", str(rec)],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -122,7 +122,7 @@ def test_hub_says_clearly_when_its_port_is_taken(site: Path, tmp_path: Path):
 
 def test_an_edge_loads_no_hub_code_or_hub_dependencies():
     code = (
-        "import sys, edge.agent, edge.drivers.wave_sim, hub.cli;"
+        "import sys, edge.agent, edge.drivers.wave_sim, fleetdaq.cli, fleetdaq.cli.edge;"
         "bad = [m for m in sys.modules if m.split('.')[0] in {'mcap', 'rich', 'zstandard'}"
         " or m in {'hub.recorder', 'hub.session', 'hub.service'}];"
         "print(bad); sys.exit(1 if bad else 0)"
@@ -137,7 +137,8 @@ def test_the_am_cell_lcd_shows_the_live_thermocouple_temperature(tmp_path: Path)
     """The demo's AM-cell node: its (simulated) 16x2 LCD shows the substrate temperature
     the node is acquiring — the agent feeds its displays from the newest scan."""
     from edge.agent import EdgeAgent
-    from edge.config import demo_config_path, load_config
+    from edge.config.load import load_config
+    from edge.config.site import demo_config_path
 
     site = load_config(demo_config_path())
     port = free_port()  # nothing listens: the agent runs without a hub
@@ -145,10 +146,10 @@ def test_the_am_cell_lcd_shows_the_live_thermocouple_temperature(tmp_path: Path)
     with agent:
         deadline = time.monotonic() + 20
         (display,) = agent.displays
-        assert display.sim_lcd is not None
+        lcd = display.smbus.buses[1][0x27]  # the simulated LCD the driver table attached
         while True:
             value = agent.latest_value("tc", "substrate")
-            shown = display.sim_lcd.lines()
+            shown = lcd.lines()
             if value is not None and "TC" in shown[0] and f"{value:7.2f}".strip() in shown[0]:
                 break
             assert time.monotonic() < deadline, (value, shown)

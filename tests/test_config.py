@@ -1,7 +1,7 @@
 """The site file: good files load into typed objects; every bad file is refused by
 `fleetdaq check` with ONE line (file, key path, problem), exit code 2 and no traceback.
 
-The CLI runs as a real subprocess (`python -m hub.cli check FILE`). All of them are started
+The CLI runs as a real subprocess (`python -m fleetdaq check FILE`). All of them are started
 at once by a module fixture, so the ~30 runs cost about as much as a few.
 """
 
@@ -16,20 +16,14 @@ from typing import get_args
 
 import pytest
 
-from edge.config import (
-    DRIVERS,
-    Channel,
-    EnvironmentSimStream,
-    SiteConfig,
-    StreamConfig,
-    ThermocoupleSimStream,
-    WaveSimStream,
-    demo_config_path,
-    effective_yaml,
-    load_config,
-    parse_config,
-)
+from edge.config.load import load_config, parse_config
+from edge.config.site import SiteConfig, demo_config_path, effective_yaml
+from edge.drivers.environment_sim import EnvironmentSimStream
+from edge.drivers.table import DRIVERS, StreamConfig
+from edge.drivers.thermocouple_sim import ThermocoupleSimStream
+from edge.drivers.wave_sim import WaveSimStream
 from edge.errors import ConfigError
+from edge.schema import Channel
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO
@@ -82,7 +76,7 @@ SHIPPED = [Path("config/demo.yaml"), Path("config/site.example.yaml")]
 
 def _check(path: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "hub.cli", "check", str(path)],
+        [sys.executable, "-m", "fleetdaq", "check", str(path)],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -211,7 +205,7 @@ def test_load_config_returns_typed_objects_with_defaults_filled() -> None:
     assert site.site == "bench"
     assert site.description == ""
     assert site.hub.listen == ["tcp/127.0.0.1:7447"]
-    assert site.hub.data_dir == "data"
+    assert site.hub.data_dir is None  # a per-system location (edge.paths), never the cwd
     recorder = site.hub.recorder
     assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, None)
     assert (recorder.include, recorder.exclude) == (["*"], [])
@@ -278,7 +272,9 @@ def test_effective_yaml_round_trips_to_an_equal_site_config(path: Path) -> None:
 
 
 def test_demo_config_path_is_the_shipped_demo_file() -> None:
-    assert demo_config_path() == REPO / "config" / "demo.yaml"
+    # Package data (so an installed wheel has it); config/demo.yaml in the repo links to it.
+    assert demo_config_path() == REPO / "edge" / "config" / "demo.yaml"
+    assert (REPO / "config" / "demo.yaml").resolve() == demo_config_path().resolve()
     assert load_config(demo_config_path()).site == "demo"
 
 

@@ -9,10 +9,10 @@ import yaml
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from edge.config import RecorderConfig
+from edge.config.hub import RecorderConfig
 from edge.wire import BatchEncoder, decode_batch
-from hub.recorder import StreamStats
 from hub.session import ACTIVE_SUFFIX, RecordingSession, StreamSelector
+from hub.stream_stats import StreamStats
 from ptp.quality import UNSYNCED
 
 T0 = 1_795_000_000_000_000_000

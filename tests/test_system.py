@@ -97,7 +97,8 @@ def test_every_file_is_closed_and_decodes(recording: tuple[Path, list[Proc]]):
 
 def test_sequences_are_contiguous_across_files(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    assert set(msgs) == {*RATES, "/events"}
+    health = {"/wec/health", "/am-cell/health", "/hub/health"}
+    assert set(msgs) == {*RATES, "/events", *health}
     for topic in RATES:
         items = msgs[topic]
         seqs = [m.sequence for _, m in items]  # type: ignore[attr-defined]
@@ -145,3 +146,22 @@ def test_every_edges_start_and_stop_are_events_in_the_recording(
         assert (node, "stopped") in events, events
     assert ("hub", "started") in events
     assert (recording[0].parent / "events.log").read_text().count("started") >= 3
+
+
+def test_every_nodes_typed_health_is_in_the_recording_about_once_a_second(
+    recording: tuple[Path, list[Proc]],
+):
+    msgs = _messages(recording[0])
+    for node in ("wec", "am-cell", "hub"):
+        items = msgs[f"/{node}/health"]
+        assert len(items) >= 0.5 * RUN_S, (node, len(items))
+        last = items[-1][1]
+        assert last.node == node  # type: ignore[attr-defined]
+        assert last.host.memory_total_bytes > 0  # type: ignore[attr-defined]
+        roles = {d.role for d in last.host.disks}  # type: ignore[attr-defined]
+        assert roles == ({"data"} if node == "hub" else {"spool"}), roles
+    wec = msgs["/wec/health"][-1][1]
+    (t8,) = wec.streams  # type: ignore[attr-defined]
+    assert t8.name == "t8"
+    assert t8.batches > 0
+    assert t8.spool_acked >= 0, "the hub's acks reached the edge"

@@ -10,7 +10,7 @@ import numpy as np
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from edge.config import RecorderConfig
+from edge.config.hub import RecorderConfig
 from edge.wire import BatchEncoder
 from hub.session import ACTIVE_SUFFIX, RecordingSession
 from hub.verify import check_file, recover_file, scan_active, verify_path
@@ -117,7 +117,7 @@ def test_verify_cli_finds_and_recovers_a_crashed_session(tmp_path: Path):
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "hub.cli", "verify", *args],
+            [sys.executable, "-m", "fleetdaq", "verify", *args],
             cwd=REPO,
             capture_output=True,
             text=True,

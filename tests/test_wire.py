@@ -19,7 +19,6 @@ from edge.wire import (
     SampleStatus,
     decode_batch,
     read_header,
-    split_data_key,
 )
 from ptp.quality import ClockQuality, ClockState
 
@@ -141,31 +140,3 @@ def test_trailing_bytes_are_refused():
     payload, _ = _batch(2, False)
     with pytest.raises(WireError, match="trailing"):
         read_header(payload + b"\x00" * 8)
-
-
-def test_data_keys_split_into_site_node_stream():
-    assert split_data_key("fleetdaq/demo/am-cell/data/tc") == ("demo", "am-cell", "tc")
-    with pytest.raises(WireError):
-        split_data_key("fleetdaq/demo/am-cell/health")
-
-
-def test_events_round_trip_and_match_rosbags():
-    from edge.wire import EVENT_MSG, EVENT_TYPE, Event, decode_event, encode_event
-
-    e = Event(1_795_000_000_000_000_001, "am-cell", 40, "tc", "open_tc", "thermocouple open — °C")
-    payload = encode_event(e)
-    assert decode_event(payload) == e
-    store = get_typestore(Stores.EMPTY)
-    store.register(get_types_from_msg(EVENT_MSG, EVENT_TYPE))
-    msg = store.deserialize_cdr(payload, EVENT_TYPE)
-    assert (msg.time_ns, msg.node, msg.level, msg.tag, msg.message) == (
-        e.time_ns,
-        e.node,
-        e.level,
-        e.tag,
-        e.message,
-    )
-    assert store.serialize_cdr(msg, EVENT_TYPE).tobytes() == payload
-    for cut in range(len(payload)):
-        with pytest.raises(WireError):
-            decode_event(payload[:cut])

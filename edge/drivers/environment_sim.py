@@ -6,11 +6,21 @@ like weather on a pier.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import numpy.typing as npt
 
-from edge.config import EnvironmentSimStream
 from edge.drivers.pacing import PacedSim
+from edge.schema import Float, StreamBase
+
+
+class EnvironmentSimStream(StreamBase):
+    """A slow simulated environment sensor (air temperature, humidity, pressure)."""
+
+    driver: Literal["environment_sim"]
+    drift_ppm: Float = 0.0
+
 
 _BASE = np.array([14.0, 78.0, 1013.0])  # °C, %RH, hPa
 _SWING = np.array([3.0, 10.0, 4.0])

@@ -12,13 +12,55 @@ DDRAM rows start at 0x00, 0x40, 0x14, 0x54; set address = 0x80 | address.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, model_validator
+
+from edge.display_text import parse_line
+from edge.drivers.i2cbus import I2cFault
+from edge.schema import Float, Int, Strict
 
 RS, E, BACKLIGHT = 0x01, 0x04, 0x08
 ROW_OFFSETS = (0x00, 0x40, 0x14, 0x54)
 CLEAR, ENTRY_MODE, DISPLAY_ON, FUNCTION_SET_4BIT_2LINE, SET_DDRAM = 0x01, 0x06, 0x0C, 0x28, 0x80
 DEGREE = 0xDF
 """'°' in the HD44780's A00 character ROM."""
+
+
+class LcdSim(Strict):
+    """A simulated HD44780 + PCF8574 (edge/drivers/sim_smbus.py)."""
+
+    faults: list[I2cFault] = []
+
+
+class LcdDisplay(Strict):
+    """An HD44780 character LCD behind a PCF8574 I2C backpack, showing live values.
+
+    Each line is text with placeholders ``{stream.channel}`` or ``{stream.channel:.1f}`` (a
+    Python format spec) naming a stream of this node and one of its channels."""
+
+    driver: Literal["hd44780_pcf8574"] = "hd44780_pcf8574"
+    bus: Annotated[Int, Field(ge=0, le=255)] = 1
+    address: Annotated[Int, Field(ge=0x20, le=0x3F)] = 0x27
+    """PCF8574: 0x20-0x27, PCF8574A: 0x38-0x3F (0x27 and 0x3F are the usual backpacks)."""
+    cols: Literal[8, 16, 20] = 16
+    rows: Literal[1, 2, 4] = 2
+    refresh_hz: Annotated[Float, Field(gt=0, le=10)] = 2.0
+    backlight: bool = True
+    lines: Annotated[list[str], Field(min_length=1, max_length=4)]
+    retries: Annotated[Int, Field(ge=0, le=10)] = 3
+    sim: LcdSim | None = None
+
+    @model_validator(mode="after")
+    def _lines_fit(self) -> LcdDisplay:
+        if len(self.lines) > self.rows:
+            raise ValueError(f"{len(self.lines)} lines for a display of {self.rows} row(s)")
+        for i, line in enumerate(self.lines):
+            try:
+                parse_line(line)
+            except ValueError as err:
+                raise ValueError(f"lines[{i}]: {err}") from None
+        return self
 
 
 def lcd_bytes(text: str, width: int) -> bytes:

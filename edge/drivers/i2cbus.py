@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import errno
 import importlib
-from typing import Any
+from typing import Any, Literal
 
 from edge.errors import DeviceError, DeviceNotFound, DriverUnavailable
+from edge.schema import SimFault
 
 NACK_ERRNOS = {errno.EREMOTEIO, errno.EIO, errno.ENXIO}
 
@@ -46,3 +47,7 @@ def open_bus(smbus: Any, bus: int) -> Any:
 
 def is_nack(err: OSError) -> bool:
     return err.errno in NACK_ERRNOS
+
+
+class I2cFault(SimFault):
+    kind: Literal["nack", "crc_error"]

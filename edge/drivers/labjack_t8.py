@@ -1,4 +1,4 @@
-"""LabJack T8 through LJM (labjack-ljm): stream mode, slow polled I/O, DAC and DIO outputs.
+"""LabJack T8 stream mode through LJM (labjack-ljm): the `labjack_t8` driver.
 
 Stream (`LabJackT8`): AIN0-7 (any subset) sampled simultaneously at up to 40 kS/s each, plus
 CORE_TIMER and STREAM_DATA_CAPTURE_16 in the scan list, so every scan carries the device clock
@@ -24,178 +24,75 @@ of this module; without LJM's native library that fails with one line saying wha
 from __future__ import annotations
 
 import contextlib
-import importlib
-import io
 import logging
-import re
 import threading
 from collections.abc import Sequence
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import AfterValidator, Field, model_validator
 
-from edge.config import LabJackT8PollStream, LabJackT8Sim, LabJackT8Stream
-from edge.drivers import Block, DriverEvent
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock, PollPacer
-from edge.errors import (
-    DeviceDisconnected,
-    DeviceError,
-    DeviceNotFound,
-    DriverError,
-    DriverUnavailable,
+from edge.drivers.base import Block, DriverEvent
+from edge.drivers.labjack_ljm import (
+    CORE_TIMER_HZ,
+    T8_MAX_SAMPLE_RATE,
+    CoreTimer,
+    LabJackT8Sim,
+    LjmDevice,
+    T8Connection,
+    load_ljm,
+    t8_range,
 )
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from edge.errors import DriverError
+from edge.schema import Channel, Float, Int, StreamBase
 from edge.wire import SampleStatus
 
 log = logging.getLogger("fleetdaq.drivers.labjack_t8")
 
-CORE_TIMER_HZ = 100_000_000
-"""The T8's CORE_TIMER counts at 100 MHz (10 ns; MODAQ 2's T8 nodes scale it the same way).
-The T7's runs at 40 MHz: this driver is for the T8."""
-_TWO32 = 1 << 32
-_INSTALL = (
-    "install LJM (the LabJack driver with libLabJackM) from https://labjack.com/ljm, "
-    "then `pip install fleetdaq[labjack]`"
-)
-_NOT_FOUND = {"DEVICE_NOT_FOUND", "NO_DEVICES_FOUND", "CANNOT_OPEN_DEVICE", "CANNOT_CONNECT"}
-_GONE = {
-    "DEVICE_DISCONNECTED",
-    "RECONNECT_FAILED",
-    "CONNECTION_HAS_YIELDED_RECONNECT_FAILED",
-    "NO_RESPONSE_BYTES_RECEIVED",
-    "INCORRECT_NUM_RESPONSE_BYTES_RECEIVED",
-    "SOCKET_LEVEL_ERROR",
-    "USB_FAILURE",
-    "DEVICE_NOT_OPEN",
-    "INVALID_HANDLE",
-}
+
+class T8Channel(Channel):
+    """A T8 analog input in a stream."""
+
+    ain: Annotated[Int, Field(ge=0, le=7)] | None = None
+    """AIN number; default: the channel's position in the list."""
+    range: Annotated[Float, AfterValidator(t8_range)] = 11.0
+    """AIN#_RANGE in ± volts."""
 
 
-def load_ljm() -> Any:
-    """Import labjack-ljm's module, or raise DriverUnavailable saying what to install.
+class LabJackT8Stream(StreamBase, T8Connection):
+    """LabJack T8 stream mode: AIN0-7 sampled simultaneously, timed by the T8's CORE_TIMER."""
 
-    The Python wrapper installs without the native library; it then prints an error at import
-    and fails at the first call, so the missing library is detected here instead.
-    """
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):
-            ljm = importlib.import_module("labjack.ljm")
-    except ImportError as err:
-        raise DriverUnavailable(f"the LabJack T8 needs labjack-ljm: {_INSTALL}") from err
-    if getattr(getattr(ljm, "ljm", None), "_staticLib", object()) is None:
-        raise DriverUnavailable(f"the LabJack T8 needs LJM's native library: {_INSTALL}")
-    return ljm
+    driver: Literal["labjack_t8"]
+    rate_hz: Annotated[Float, Field(gt=0, le=40_000)]
+    channels: Annotated[list[T8Channel], Field(min_length=1, max_length=8)]  # type: ignore[assignment]
+    resolution_index: Annotated[Int, Field(ge=0, le=16)] = 0
+    """STREAM_RESOLUTION_INDEX (0 = the device default); higher is quieter and slower."""
+    settling_us: Annotated[Float, Field(ge=0, le=50_000)] = 0.0
+    """STREAM_SETTLING_US (0 = automatic)."""
+    buffer_bytes: Annotated[Int, Field(ge=1024, le=32768)] = 32768
+    """STREAM_BUFFER_SIZE_BYTES: the device-side stream buffer, at its maximum by default."""
+    sim: LabJackT8Sim | None = None
 
-
-def _transport(sim: LabJackT8Sim | None, clock: Clock) -> Any:
-    if sim is None:
-        return load_ljm()
-    from edge.drivers.sim_ljm import SimLJM
-
-    return SimLJM(sim, clock)
-
-
-class _LjmDevice:
-    """A T8 handle and LJM error wrapping, shared by the stream, poll and output classes."""
-
-    def __init__(self, ljm: Any, connection: str, identifier: str, clock: Clock) -> None:
-        self.ljm = ljm
-        self.connection = connection
-        self.identifier = identifier
-        self.clock = clock
-        self.handle: int | None = None
-        self.error_type: type[Exception] = ljm.LJMError
-        self._code_names = {
-            v: k
-            for k, v in vars(ljm.errorcodes).items()
-            if isinstance(v, int) and not k.endswith(("_BEGIN", "_END"))
-        }
+    @model_validator(mode="after")
+    def _inputs_and_rate(self) -> LabJackT8Stream:
+        ains = [ch.ain if ch.ain is not None else i for i, ch in enumerate(self.channels)]
+        if len(set(ains)) != len(ains):
+            raise ValueError(f"two channels read the same AIN ({ains})")
+        if self.buffer_bytes & (self.buffer_bytes - 1):
+            raise ValueError(f"buffer_bytes must be a power of two (got {self.buffer_bytes})")
+        addresses = len(self.channels) + 2  # + CORE_TIMER and STREAM_DATA_CAPTURE_16
+        if addresses * self.rate_hz > T8_MAX_SAMPLE_RATE:
+            raise ValueError(
+                f"{addresses} addresses x {self.rate_hz:g} Hz exceeds the T8's "
+                f"{T8_MAX_SAMPLE_RATE} samples/s"
+            )
+        return self
 
     @property
-    def where(self) -> str:
-        return f"T8 {self.identifier} ({self.connection})"
-
-    def wrap(self, err: Exception, call: str) -> DriverError:
-        """A typed DriverError for an LJMError, keeping the LJM code."""
-        code = getattr(err, "errorCode", None)
-        name = self._code_names.get(code, "") if isinstance(code, int) else ""
-        text = getattr(err, "errorString", "") or str(err)
-        message = f"{self.where}: {call}: LJM error {code}"
-        message += f" {name}" if name else ""
-        if text and text != name:
-            message += f": {text}"
-        if name in _NOT_FOUND:
-            return DeviceNotFound(message, code)
-        if name in _GONE:
-            return DeviceDisconnected(message, code)
-        return DeviceError(message, code)
-
-    def call(self, call: str, *args: Any) -> Any:
-        try:
-            return getattr(self.ljm, call)(*args)
-        except self.error_type as err:
-            raise self.wrap(err, call) from err
-
-    def open(self) -> int:
-        self.handle = self.call("openS", "T8", self.connection, self.identifier)
-        return self.handle
-
-    def close(self) -> None:
-        handle, self.handle = self.handle, None
-        if handle is None:
-            return
-        with contextlib.suppress(self.error_type):
-            self.ljm.close(handle)
-
-
-class CoreTimer:
-    """Unwraps the T8's 32-bit CORE_TIMER into a 64-bit tick count, exactly, in numpy.
-
-    Between two timer values the expected number of ticks is known (from scan indices within a
-    stream, from host time across a restart), so the number of 2^32 wraps between them is the
-    integer that reconciles expected and raw differences: exact while the expectation is good
-    to better than ±2^31 ticks (21 s).
-    """
-
-    def __init__(self) -> None:
-        self.last_ticks: int | None = None
-        """Unwrapped ticks of the newest timer value."""
-        self.wraps = 0
-
-    def reset(self) -> None:
-        self.last_ticks = None
-
-    def unwrap(
-        self, ticks32: npt.NDArray[np.int64], expected_deltas: npt.NDArray[np.float64]
-    ) -> npt.NDArray[np.int64]:
-        """Unwrap `ticks32` (raw timer values, oldest first).
-
-        `expected_deltas[i]` is the expected tick count from the value before `ticks32[i]` (the
-        previous call's last value for i = 0; ignored on the first call) to `ticks32[i]`.
-        """
-        if ticks32.size == 0:
-            return ticks32
-        if self.last_ticks is None:
-            base = int(ticks32[0])
-            raw = np.diff(ticks32)
-            expected = expected_deltas[1:]
-        else:
-            base = self.last_ticks
-            raw = np.diff(ticks32, prepend=self.last_ticks % _TWO32)
-            expected = expected_deltas
-        wraps = np.rint((expected - raw) / _TWO32).astype(np.int64)
-        self.wraps += int(np.count_nonzero(wraps))
-        steps = raw + wraps * _TWO32
-        out = np.empty(ticks32.size, dtype=np.int64)
-        if self.last_ticks is None:
-            out[0] = base
-            np.cumsum(steps, out=out[1:])
-            out[1:] += base
-        else:
-            np.cumsum(steps, out=out)
-            out += base
-        self.last_ticks = int(out[-1])
-        return out
+    def ains(self) -> list[int]:
+        return [ch.ain if ch.ain is not None else i for i, ch in enumerate(self.channels)]
 
 
 def decode_scans(
@@ -217,20 +114,20 @@ class LabJackT8:
 
     Args:
         cfg: the stream's config.
-        ljm: the `ljm` module to use (a fake in tests); default: the simulated T8 when the
-            config has `sim:`, otherwise labjack-ljm (imported now).
-        clock: host clocks (a VirtualClock in tests and benches).
+        transport: the `ljm` module to use (the simulated T8 in sims, a fake in tests);
+            default: labjack-ljm (imported now).
+        clock: host clocks (a VirtualTime in tests and benches).
     Raises:
         DriverUnavailable: labjack-ljm or LJM's native library is not installed.
     """
 
     def __init__(
-        self, cfg: LabJackT8Stream, ljm: Any | None = None, clock: Clock = SYSTEM_CLOCK
+        self, cfg: LabJackT8Stream, transport: Any | None = None, clock: TimeSource = SYSTEM_TIME
     ) -> None:
         self.cfg = cfg
         self.clock = clock
-        self.ljm = ljm if ljm is not None else _transport(cfg.sim, clock)
-        self.dev = _LjmDevice(self.ljm, cfg.connection, cfg.identifier, clock)
+        self.ljm = transport if transport is not None else load_ljm()
+        self.dev = LjmDevice(self.ljm, cfg.connection, cfg.identifier, clock)
         self.scans = cfg.batch_scans
         self.ains = cfg.ains
         self._dummy = float(self.ljm.constants.DUMMY_VALUE)
@@ -435,165 +332,3 @@ class LabJackT8:
 
     def _event(self, level: int, tag: str, message: str) -> None:
         self._events.append(DriverEvent(level, tag, message))
-
-
-_DIO = re.compile(r"^(FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9]))$")
-
-
-class LabJackT8Poll:
-    """Slow command-response reads of a T8 (AIN volts, DIO states): `labjack_t8_poll`.
-
-    Each poll reads every channel and CORE_TIMER in one eReadNames, so the device clock times
-    polls as it times stream scans. Polls are paced on the host; a poll that could not happen
-    on time becomes an invalid sample instead of a burst.
-    """
-
-    def __init__(
-        self, cfg: LabJackT8PollStream, ljm: Any | None = None, clock: Clock = SYSTEM_CLOCK
-    ) -> None:
-        self.cfg = cfg
-        self.clock = clock
-        self.ljm = ljm if ljm is not None else _transport(cfg.sim, clock)
-        self.dev = _LjmDevice(self.ljm, cfg.connection, cfg.identifier, clock)
-        self.scans = cfg.batch_scans
-        self.names = [ch.source for ch in cfg.channels] + ["CORE_TIMER"]
-        self.pacer = PollPacer(cfg.rate_hz, clock)
-        self.timer = CoreTimer()
-        self._closing = threading.Event()
-        self._last_host_ns: int | None = None
-        self._events: list[DriverEvent] = []
-        self.opens = 0
-        self.reconnects = 0
-
-    def open(self) -> None:
-        self._closing.clear()
-        self.dev.open()
-        names: list[str] = []
-        values: list[float] = []
-        for ch in self.cfg.channels:
-            if ch.source.startswith("AIN"):
-                names += [f"{ch.source}_RANGE", f"{ch.source}_RESOLUTION_INDEX"]
-                values += [ch.range, float(self.cfg.resolution_index)]
-        try:
-            if names:
-                self.dev.call("eWriteNames", self.dev.handle, len(names), names, values)
-        except DriverError:
-            self.dev.close()
-            raise
-        if self.opens:
-            self.reconnects += 1
-            self._events.append(
-                DriverEvent(logging.INFO, "reconnected", f"{self.dev.where}: polling again")
-            )
-        self.opens += 1
-        self.pacer.start()
-
-    def read(self) -> Block:
-        rows = np.full((self.scans, len(self.cfg.channels)), np.nan)
-        status = np.zeros(rows.shape, dtype=np.uint8)
-        timer: list[int] = []
-        polled: list[int] = []
-        poll_host: list[int] = []
-        i = 0
-        while i < self.scans:
-            missed = self.pacer.next_poll(self._closing)
-            if missed is None or self.dev.handle is None:
-                raise InterruptedError("driver closed")
-            for _ in range(min(missed, self.scans - i)):
-                status[i] = SampleStatus.SKIPPED_SCAN
-                i += 1
-            if i == self.scans:
-                break
-            values = self.dev.call("eReadNames", self.dev.handle, len(self.names), self.names)
-            poll_host.append(self.clock.time_ns())
-            rows[i] = values[:-1]
-            timer.append(int(values[-1]))
-            polled.append(i)
-            i += 1
-        host_ns = self.clock.time_ns()
-        device_ns = None
-        if timer:
-            # Polls are paced by the host: the expected ticks between them come from host time.
-            hosts = np.asarray(poll_host, dtype=np.float64)
-            previous = self._last_host_ns if self._last_host_ns is not None else poll_host[0]
-            expected = np.diff(hosts, prepend=previous) * (CORE_TIMER_HZ / 1e9)
-            ticks = self.timer.unwrap(np.asarray(timer, dtype=np.int64), expected)
-            period_ticks = self.pacer.period_ns * CORE_TIMER_HZ / 1e9
-            last = int(ticks[-1]) + round((self.scans - 1 - polled[-1]) * period_ticks)
-            device_ns = last * 1_000_000_000 // CORE_TIMER_HZ
-            self._last_host_ns = poll_host[-1]
-        events, self._events = tuple(self._events), []
-        return Block(rows, host_ns, status if status.any() else None, device_ns, events)
-
-    def close(self) -> None:
-        self._closing.set()
-        self.dev.close()
-
-    def health(self) -> dict[str, Any]:
-        return {"missed_polls": self.pacer.missed, "reconnects": self.reconnects}
-
-
-class T8Outputs:
-    """The T8's DAC and DIO outputs: set a value, get the device's readback.
-
-    What the control work drives; every write is followed by a read of the same register so a
-    command can report what the device actually holds (a DAC clamps to its -0.1..10 V span).
-    """
-
-    DAC_MIN_V = -0.1
-    DAC_MAX_V = 10.0
-
-    def __init__(
-        self,
-        ljm: Any | None = None,
-        connection: str = "ANY",
-        identifier: str = "ANY",
-        sim: LabJackT8Sim | None = None,
-        clock: Clock = SYSTEM_CLOCK,
-    ) -> None:
-        self.ljm = ljm if ljm is not None else _transport(sim, clock)
-        self.dev = _LjmDevice(self.ljm, connection, identifier, clock)
-
-    def __enter__(self) -> T8Outputs:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def open(self) -> None:
-        if self.dev.handle is None:
-            self.dev.open()
-
-    def close(self) -> None:
-        self.dev.close()
-
-    def set_dac(self, dac: int, volts: float) -> float:
-        """Set DAC0 or DAC1; returns the readback (V). Raises ValueError outside -0.1..10 V."""
-        if dac not in (0, 1):
-            raise ValueError(f"the T8 has DAC0 and DAC1, not DAC{dac}")
-        if not self.DAC_MIN_V <= volts <= self.DAC_MAX_V:
-            raise ValueError(
-                f"DAC{dac}: {volts:g} V is outside {self.DAC_MIN_V}..{self.DAC_MAX_V} V"
-            )
-        return self._write_read(f"DAC{dac}", float(volts))
-
-    def set_dio(self, line: str, state: bool) -> bool:
-        """Drive a digital line (FIO#, EIO#, CIO#, DIO#) high or low; returns the readback."""
-        self._check_line(line)
-        return self._write_read(line, 1.0 if state else 0.0) >= 0.5
-
-    def read_dio(self, line: str) -> bool:
-        self._check_line(line)
-        self.open()
-        return float(self.dev.call("eReadName", self.dev.handle, line)) >= 0.5
-
-    def _write_read(self, name: str, value: float) -> float:
-        self.open()
-        self.dev.call("eWriteName", self.dev.handle, name, value)
-        return float(self.dev.call("eReadName", self.dev.handle, name))
-
-    @staticmethod
-    def _check_line(line: str) -> None:
-        if not _DIO.match(line):
-            raise ValueError(f"not a T8 digital line: {line!r}")

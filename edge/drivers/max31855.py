@@ -22,14 +22,47 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
-from edge.config import Max31855Stream
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from pydantic import Field
+
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
-from edge.drivers.spibus import SpiDev, SpiFactory, load_spidev, open_spi
+from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
+from edge.schema import Channel, Float, Int, SimFault, StreamBase, Strict
 from edge.wire import SampleStatus
 
 log = logging.getLogger("fleetdaq.drivers.max31855")
+
+
+class TcFault(SimFault):
+    kind: Literal["open_circuit", "short_gnd", "short_vcc", "no_response"]
+
+
+class WeldThermalModel(Strict):
+    """A simulated thermocouple on a weld cell: heats during each layer, cools between layers."""
+
+    ambient_c: Float = 25.0
+    peak_c: Float = 450.0
+    layer_s: Annotated[Float, Field(gt=0)] = 20.0
+    cool_s: Annotated[Float, Field(gt=0)] = 15.0
+    noise_c: Annotated[Float, Field(ge=0)] = 0.3
+    seed: Int | None = None
+
+
+class ThermocoupleSim(WeldThermalModel):
+    faults: list[TcFault] = []
+
+
+class Max31855Stream(StreamBase, SpiDevice):
+    """MAX31855 on SPI: channel 0 the thermocouple, channel 1 (optional) the cold junction."""
+
+    driver: Literal["max31855"]
+    rate_hz: Annotated[Float, Field(gt=0, le=10)]
+    """At most 10 Hz: a conversion takes up to 100 ms (datasheet, tCONV)."""
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    sim: ThermocoupleSim | None = None
+
 
 SPI_MODE = 0
 _FAULT = 1 << 16
@@ -120,9 +153,9 @@ class Max31855(PolledDriver):
 
     Args:
         cfg: the stream's config.
-        spi: makes the SpiDev to use (a fake in tests); default: the simulated chip when the
-            config has `sim:`, otherwise `spidev.SpiDev` (imported now).
-        clock: host clocks (a VirtualClock in tests).
+        transport: makes the SpiDev to use (the simulated chip in sims, a fake in tests);
+            default: `spidev.SpiDev` (imported now).
+        clock: host clocks (a VirtualTime in tests).
     Raises:
         DriverUnavailable: spidev is not installed.
     """
@@ -130,19 +163,14 @@ class Max31855(PolledDriver):
     fault_tag = "thermocouple_fault"
 
     def __init__(
-        self, cfg: Max31855Stream, spi: SpiFactory | None = None, clock: Clock = SYSTEM_CLOCK
+        self,
+        cfg: Max31855Stream,
+        transport: SpiFactory | None = None,
+        clock: TimeSource = SYSTEM_TIME,
     ) -> None:
         super().__init__(cfg.rate_hz, cfg.batch_scans, len(cfg.channels), clock)
         self.cfg = cfg
-        if spi is None:
-            if cfg.sim is not None:
-                from edge.drivers.sim_spi import SimMax31855
-
-                sim_cfg = cfg.sim
-                spi = lambda: SimMax31855(sim_cfg, clock)  # noqa: E731
-            else:
-                spi = load_spidev("MAX31855")
-        self._factory = spi
+        self._factory = transport if transport is not None else load_spidev("MAX31855")
         self._spi: SpiDev | None = None
 
     @property

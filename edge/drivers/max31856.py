@@ -20,13 +20,61 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
-from edge.config import MAX31856_TYPES, Max31856Stream
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from pydantic import Field, model_validator
+
+from edge.drivers.max31855 import WeldThermalModel
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
-from edge.drivers.spibus import SpiDev, SpiFactory, load_spidev, open_spi
+from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
 from edge.errors import DeviceNotFound
+from edge.schema import Channel, Float, SimFault, StreamBase
 from edge.wire import SampleStatus
+
+
+class Tc56Fault(SimFault):
+    kind: Literal["open_circuit", "tc_range", "cj_range", "overvoltage", "no_response"]
+
+
+class Max31856Sim(WeldThermalModel):
+    faults: list[Tc56Fault] = []
+
+
+MAX31856_TYPES = ("B", "E", "J", "K", "N", "R", "S", "T")
+
+
+class Max31856Stream(StreamBase, SpiDevice):
+    """MAX31856 on SPI: thermocouple type, averaging, filter and conversion mode configured."""
+
+    driver: Literal["max31856"]
+    rate_hz: Annotated[Float, Field(gt=0, le=12)]
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    thermocouple: Literal["B", "E", "J", "K", "N", "R", "S", "T"] = "K"
+    averaging: Literal[1, 2, 4, 8, 16] = 1
+    mains_hz: Literal[50, 60] = 50
+    """The notch of the input filter: the local mains frequency."""
+    conversion: Literal["continuous", "one_shot"] = "continuous"
+    sim: Max31856Sim | None = None
+
+    @property
+    def conversion_s(self) -> float:
+        """Longest conversion time (datasheet, Electrical Characteristics: tCONV)."""
+        first = {("continuous", 60): 0.090, ("continuous", 50): 0.100}.get(
+            (self.conversion, self.mains_hz), 0.155 if self.mains_hz == 60 else 0.185
+        )
+        return first + (self.averaging - 1) * (0.03333 if self.mains_hz == 60 else 0.040)
+
+    @model_validator(mode="after")
+    def _rate_within_conversion_time(self) -> Max31856Stream:
+        limit = 1.0 / self.conversion_s
+        if self.rate_hz > limit:
+            raise ValueError(
+                f"rate_hz {self.rate_hz:g} is faster than a {self.conversion} conversion with "
+                f"averaging {self.averaging} at {self.mains_hz} Hz allows ({limit:.2f} Hz)"
+            )
+        return self
+
 
 SPI_MODE = 1
 WRITE = 0x80
@@ -113,9 +161,9 @@ class Max31856(PolledDriver):
 
     Args:
         cfg: the stream's config.
-        spi: makes the SpiDev to use (a fake in tests); default: the simulated chip when the
-            config has `sim:`, otherwise `spidev.SpiDev` (imported now).
-        clock: host clocks (a VirtualClock in tests).
+        transport: makes the SpiDev to use (the simulated chip in sims, a fake in tests);
+            default: `spidev.SpiDev` (imported now).
+        clock: host clocks (a VirtualTime in tests).
     Raises:
         DriverUnavailable: spidev is not installed.
     """
@@ -123,19 +171,14 @@ class Max31856(PolledDriver):
     fault_tag = "thermocouple_fault"
 
     def __init__(
-        self, cfg: Max31856Stream, spi: SpiFactory | None = None, clock: Clock = SYSTEM_CLOCK
+        self,
+        cfg: Max31856Stream,
+        transport: SpiFactory | None = None,
+        clock: TimeSource = SYSTEM_TIME,
     ) -> None:
         super().__init__(cfg.rate_hz, cfg.batch_scans, len(cfg.channels), clock)
         self.cfg = cfg
-        if spi is None:
-            if cfg.sim is not None:
-                from edge.drivers.sim_spi import SimMax31856
-
-                sim_cfg = cfg.sim
-                spi = lambda: SimMax31856(sim_cfg, clock)  # noqa: E731
-            else:
-                spi = load_spidev("MAX31856")
-        self._factory = spi
+        self._factory = transport if transport is not None else load_spidev("MAX31856")
         self._spi: SpiDev | None = None
         self.registers = config_registers(cfg)
 

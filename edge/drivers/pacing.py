@@ -10,7 +10,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from edge.drivers import Block
+from edge.drivers.base import Block
 
 
 class DevicePacer:
@@ -80,11 +80,11 @@ class PacedSim:
 # --- Clocks for drivers and simulated transports ---------------------------------------------
 
 
-class Clock(Protocol):
+class TimeSource(Protocol):
     """Host time for a driver and its (simulated) transport.
 
-    Real drivers use `SYSTEM_CLOCK`; unit tests and the timing bench hand the driver and its
-    simulated transport the same `VirtualClock`, so hours of device time run in seconds.
+    Real drivers use `SYSTEM_TIME`; unit tests and the timing bench hand the driver and its
+    simulated transport the same `VirtualTime`, so hours of device time run in seconds.
     """
 
     def time_ns(self) -> int:
@@ -100,7 +100,7 @@ class Clock(Protocol):
         ...
 
 
-class SystemClock:
+class SystemTime:
     """The host's clocks; waits are interruptible through `cancel`."""
 
     def time_ns(self) -> int:
@@ -116,10 +116,10 @@ class SystemClock:
         return not cancel.is_set()
 
 
-SYSTEM_CLOCK = SystemClock()
+SYSTEM_TIME = SystemTime()
 
 
-class VirtualClock:
+class VirtualTime:
     """Simulated time: `sleep_until` jumps there at once. Both clocks advance together."""
 
     def __init__(self, start_ns: int = 1_795_000_000_000_000_000) -> None:
@@ -154,7 +154,7 @@ class PollPacer:
     keeps meaning time.
     """
 
-    def __init__(self, rate_hz: float, clock: Clock) -> None:
+    def __init__(self, rate_hz: float, clock: TimeSource) -> None:
         self.period_ns = 1e9 / rate_hz
         self.clock = clock
         self._start = 0

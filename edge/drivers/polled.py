@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from edge.drivers import Block, DriverEvent
-from edge.drivers.pacing import Clock, PollPacer
+from edge.drivers.base import Block, DriverEvent
+from edge.drivers.pacing import PollPacer, TimeSource
 from edge.wire import SampleStatus
 
 
@@ -36,7 +36,7 @@ class PolledDriver:
 
     fault_tag = "device_fault"
 
-    def __init__(self, rate_hz: float, scans: int, channels: int, clock: Clock) -> None:
+    def __init__(self, rate_hz: float, scans: int, channels: int, clock: TimeSource) -> None:
         self.scans = scans
         self.channels = channels
         self.clock = clock

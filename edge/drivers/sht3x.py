@@ -15,14 +15,42 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from edge.config import Sht3xStream
-from edge.drivers.i2cbus import is_nack, load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from pydantic import Field
+
+from edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
 from edge.errors import DeviceError, DeviceNotFound
+from edge.schema import Channel, Float, Int, StreamBase, Strict
 from edge.wire import SampleStatus
+
+
+class Sht3xSim(Strict):
+    """A simulated SHT3x on a pier: temperature and humidity wander slowly."""
+
+    temperature_c: Float = 14.0
+    humidity_pct: Annotated[Float, Field(ge=0, le=100)] = 78.0
+    seed: Int | None = None
+    faults: list[I2cFault] = []
+
+
+class Sht3xStream(StreamBase):
+    """Sensirion SHT3x on I2C: channel 0 temperature (°C), channel 1 (optional) humidity (%RH)."""
+
+    driver: Literal["sht3x"]
+    rate_hz: Annotated[Float, Field(gt=0, le=10)]
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
+    bus: Annotated[Int, Field(ge=0, le=255)] = 1
+    """/dev/i2c-<bus>."""
+    address: Literal[0x44, 0x45] = 0x44
+    """0x44 with ADDR to GND, 0x45 with ADDR to VDD."""
+    repeatability: Literal["high", "medium", "low"] = "high"
+    retries: Annotated[Int, Field(ge=0, le=10)] = 3
+    """Extra attempts after a NACK or a CRC mismatch before the sample is marked invalid."""
+    sim: Sht3xSim | None = None
+
 
 COMMANDS = {"high": (0x24, 0x00), "medium": (0x24, 0x0B), "low": (0x24, 0x16)}
 MEASUREMENT_S = {"high": 0.0155, "medium": 0.0065, "low": 0.0045}
@@ -74,9 +102,9 @@ class Sht3x(PolledDriver):
 
     Args:
         cfg: the stream's config.
-        smbus: an `smbus2`-like module (a fake in tests); default: the simulated sensor when
-            the config has `sim:`, otherwise smbus2 (imported now).
-        clock: host clocks (a VirtualClock in tests).
+        transport: an `smbus2`-like module (the simulated sensor's bus in sims, a fake in
+            tests); default: smbus2 (imported now).
+        clock: host clocks (a VirtualTime in tests).
     Raises:
         DriverUnavailable: smbus2 is not installed.
     """
@@ -84,19 +112,11 @@ class Sht3x(PolledDriver):
     fault_tag = "sensor_fault"
 
     def __init__(
-        self, cfg: Sht3xStream, smbus: Any | None = None, clock: Clock = SYSTEM_CLOCK
+        self, cfg: Sht3xStream, transport: Any | None = None, clock: TimeSource = SYSTEM_TIME
     ) -> None:
         super().__init__(cfg.rate_hz, cfg.batch_scans, len(cfg.channels), clock)
         self.cfg = cfg
-        if smbus is None:
-            if cfg.sim is not None:
-                from edge.drivers.sim_smbus import SimSht3x, SimSmbus2
-
-                smbus = SimSmbus2(clock)
-                smbus.attach(cfg.bus, cfg.address, SimSht3x(cfg.sim, clock))
-            else:
-                smbus = load_smbus2("SHT3x")
-        self.smbus = smbus
+        self.smbus = transport if transport is not None else load_smbus2("SHT3x")
         self._bus: Any = None
         self.retries = 0
         self.crc_errors = 0

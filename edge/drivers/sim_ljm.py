@@ -26,14 +26,18 @@ import math
 import re
 import threading
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from edge.config import T8_MAX_SAMPLE_RATE, T8_RANGES, LabJackT8Sim
-from edge.drivers.pacing import SYSTEM_CLOCK, Clock
+from edge.drivers.labjack_ljm import T8_MAX_SAMPLE_RATE, T8_RANGES, LabJackT8Sim
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.simfaults import FaultSchedule
 from edge.drivers.wave_sim import WaveModel
+
+if TYPE_CHECKING:
+    from edge.drivers.labjack_t8 import LabJackT8Stream
+    from edge.drivers.labjack_t8_poll import LabJackT8PollStream
 
 CORE_TIMER_HZ = 100_000_000
 """The T8's CORE_TIMER rate (the T7's runs at 40 MHz)."""
@@ -138,7 +142,7 @@ _DAC = re.compile(r"^DAC([01])$")
 class SimT8:
     """One simulated T8: registers, CORE_TIMER, stream engine, plug state."""
 
-    def __init__(self, cfg: LabJackT8Sim, clock: Clock) -> None:
+    def __init__(self, cfg: LabJackT8Sim, clock: TimeSource) -> None:
         self.cfg = cfg
         self.clock = clock
         self.rng = np.random.default_rng(cfg.seed)
@@ -272,7 +276,7 @@ class SimLJM:
     errorcodes: ClassVar[type[errorcodes]] = errorcodes
     constants: ClassVar[type[constants]] = constants
 
-    def __init__(self, cfg: LabJackT8Sim, clock: Clock = SYSTEM_CLOCK) -> None:
+    def __init__(self, cfg: LabJackT8Sim, clock: TimeSource = SYSTEM_TIME) -> None:
         self.device = SimT8(cfg, clock)
         self.clock = clock
         self._handles: set[int] = set()
@@ -516,3 +520,9 @@ class SimLJM:
         if stream is None:
             raise RuntimeError("no stream")
         return math.floor(stream.start_ticks + index * stream.ticks_per_scan)
+
+
+def t8_transport(cfg: LabJackT8Stream | LabJackT8PollStream, clock: TimeSource) -> SimLJM:
+    """The `ljm` the T8 drivers get when their config has `sim:` (edge.drivers.table)."""
+    assert cfg.sim is not None
+    return SimLJM(cfg.sim, clock)

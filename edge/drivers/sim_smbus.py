@@ -22,10 +22,16 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from edge.config import LcdSim, Sht3xSim
-from edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E
-from edge.drivers.pacing import Clock
-from edge.drivers.sht3x import COMMANDS, MEASUREMENT_S, SOFT_RESET, encode_sht3x
+from edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
+from edge.drivers.pacing import TimeSource
+from edge.drivers.sht3x import (
+    COMMANDS,
+    MEASUREMENT_S,
+    SOFT_RESET,
+    Sht3xSim,
+    Sht3xStream,
+    encode_sht3x,
+)
 from edge.drivers.simfaults import FaultSchedule
 
 
@@ -121,7 +127,7 @@ class SimSmbus2:
 
     i2c_msg: ClassVar[type[SimI2cMsg]] = SimI2cMsg
 
-    def __init__(self, clock: Clock) -> None:
+    def __init__(self, clock: TimeSource) -> None:
         self.clock = clock
         self.buses: dict[int, dict[int, SimI2cDevice]] = {}
         self._lock = threading.Lock()
@@ -136,7 +142,7 @@ class SimSmbus2:
 
 
 class _Faulty:
-    def __init__(self, faults: Any, seed: int | None, clock: Clock) -> None:
+    def __init__(self, faults: Any, seed: int | None, clock: TimeSource) -> None:
         self.clock = clock
         self.rng = np.random.default_rng(seed)
         self.faults = FaultSchedule(faults, self.rng)
@@ -152,7 +158,7 @@ class _Faulty:
 class SimSht3x(_Faulty):
     """An SHT3x: single-shot measurements, NACK while measuring, CRC-8 on every word."""
 
-    def __init__(self, sim: Sht3xSim, clock: Clock) -> None:
+    def __init__(self, sim: Sht3xSim, clock: TimeSource) -> None:
         super().__init__(sim.faults, sim.seed, clock)
         self.sim = sim
         self._ready_s: float | None = None
@@ -196,7 +202,9 @@ class SimSht3x(_Faulty):
 class SimLcd(_Faulty):
     """A PCF8574 driving an HD44780 (4-bit): what the LCD would show, readable by tests."""
 
-    def __init__(self, sim: LcdSim | None, clock: Clock, cols: int = 16, rows: int = 2) -> None:
+    def __init__(
+        self, sim: LcdSim | None, clock: TimeSource, cols: int = 16, rows: int = 2
+    ) -> None:
         super().__init__(sim.faults if sim else [], None, clock)
         self.cols = cols
         self.rows = rows
@@ -265,3 +273,19 @@ class SimLcd(_Faulty):
         elif value == 0x01:  # clear display
             self.ddram[:] = b" " * 0x80
             self.address = 0
+
+
+def sht3x_transport(cfg: Sht3xStream, clock: TimeSource) -> SimSmbus2:
+    """The `smbus2` `sht3x` gets when its config has `sim:`: a bus with the sensor on it."""
+    assert cfg.sim is not None
+    smbus = SimSmbus2(clock)
+    smbus.attach(cfg.bus, cfg.address, SimSht3x(cfg.sim, clock))
+    return smbus
+
+
+def lcd_transport(cfg: LcdDisplay, clock: TimeSource) -> SimSmbus2:
+    """The `smbus2` an LCD display gets when its config has `sim:`: a bus with the LCD on it
+    (``smbus.buses[bus][address]`` is the `SimLcd`, whose `lines()` tests read)."""
+    smbus = SimSmbus2(clock)
+    smbus.attach(cfg.bus, cfg.address, SimLcd(cfg.sim, clock, cfg.cols, cfg.rows))
+    return smbus

@@ -15,8 +15,7 @@ import threading
 
 import numpy as np
 
-from edge.config import Max31856Sim, ThermocoupleSim
-from edge.drivers.max31855 import encode_max31855
+from edge.drivers.max31855 import Max31855Stream, ThermocoupleSim, encode_max31855
 from edge.drivers.max31856 import (
     CR0_1SHOT,
     CR0_50HZ,
@@ -26,10 +25,13 @@ from edge.drivers.max31856 import (
     SR_OVUV,
     SR_TCRANGE,
     WRITE,
+    Max31856Sim,
+    Max31856Stream,
     encode_max31856,
 )
-from edge.drivers.pacing import Clock
+from edge.drivers.pacing import TimeSource
 from edge.drivers.simfaults import FaultSchedule
+from edge.drivers.spibus import SpiFactory
 
 _STEP_S = 0.05
 
@@ -65,7 +67,7 @@ class _SimSpiChip:
     max_speed_hz = 500_000
     bits_per_word = 8
 
-    def __init__(self, sim: ThermocoupleSim | Max31856Sim, clock: Clock) -> None:
+    def __init__(self, sim: ThermocoupleSim | Max31856Sim, clock: TimeSource) -> None:
         self.clock = clock
         self.rng = np.random.default_rng(sim.seed)
         self.faults = FaultSchedule(sim.faults, self.rng)
@@ -122,7 +124,7 @@ _DEFAULTS = [0x00, 0x03, 0xFF, 0x7F, 0xC0, 0x7F, 0xFF, 0x80, 0x00, 0x00, 0, 0, 0
 class SimMax31856(_SimSpiChip):
     """A fake SpiDev with a MAX31856: a register file and a conversion engine."""
 
-    def __init__(self, sim: Max31856Sim, clock: Clock) -> None:
+    def __init__(self, sim: Max31856Sim, clock: TimeSource) -> None:
         super().__init__(sim, clock)
         self.regs = list(_DEFAULTS)
         self._next_conversion = 0.0
@@ -186,3 +188,17 @@ class SimMax31856(_SimSpiChip):
                     self._next_conversion = t + self._conversion_s()
                 return [0xFF] * len(data)
             return [0xFF] + [self.regs[(address + i) & 0x0F] for i in range(len(data) - 1)]
+
+
+def max31855_transport(cfg: Max31855Stream, clock: TimeSource) -> SpiFactory:
+    """The SpiDev factory `max31855` gets when its config has `sim:` (edge.drivers.table)."""
+    sim = cfg.sim
+    assert sim is not None
+    return lambda: SimMax31855(sim, clock)
+
+
+def max31856_transport(cfg: Max31856Stream, clock: TimeSource) -> SpiFactory:
+    """The SpiDev factory `max31856` gets when its config has `sim:` (edge.drivers.table)."""
+    sim = cfg.sim
+    assert sim is not None
+    return lambda: SimMax31856(sim, clock)

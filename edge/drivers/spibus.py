@@ -5,9 +5,12 @@ from __future__ import annotations
 import errno
 import importlib
 from collections.abc import Callable
-from typing import Protocol
+from typing import Annotated, Protocol
+
+from pydantic import Field
 
 from edge.errors import DeviceError, DeviceNotFound, DriverUnavailable
+from edge.schema import Int, Strict
 
 
 class SpiDev(Protocol):
@@ -59,3 +62,14 @@ def open_spi(factory: SpiFactory, bus: int, device: int, mode: int, speed_hz: in
     spi.max_speed_hz = speed_hz
     spi.mode = mode
     return spi
+
+
+class SpiDevice(Strict):
+    """Where a chip sits on SPI (the part of a stream's config every SPI driver shares)."""
+
+    bus: Annotated[Int, Field(ge=0, le=15)] = 0
+    """/dev/spidev<bus>.<device>."""
+    device: Annotated[Int, Field(ge=0, le=15)] = 0
+    """Chip select (CE0 = 0, CE1 = 1)."""
+    max_speed_hz: Annotated[Int, Field(ge=10_000, le=5_000_000)] = 1_000_000
+    """SCK; the MAX3185x allow up to 5 MHz."""

@@ -8,12 +8,25 @@ Channel 1 (if configured) is the cold junction at 0.0625 °C resolution.
 from __future__ import annotations
 
 import math
+from typing import Annotated, Literal
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import Field
 
-from edge.config import ThermocoupleSimStream
 from edge.drivers.pacing import PacedSim
+from edge.schema import Float, StreamBase
+
+
+class ThermocoupleSimStream(StreamBase):
+    """A MAX31855-like simulated thermocouple on a weld cell: heats per layer, cools between."""
+
+    driver: Literal["thermocouple_sim"]
+    ambient_c: Float = 25.0
+    peak_c: Float = 450.0
+    layer_s: Annotated[Float, Field(gt=0)] = 20.0
+    cool_s: Annotated[Float, Field(gt=0)] = 15.0
+    drift_ppm: Float = 0.0
 
 
 class ThermocoupleSim(PacedSim):

@@ -8,11 +8,24 @@ plus Gaussian noise. Noise comes from a pre-drawn table sliced at random offsets
 
 from __future__ import annotations
 
+from typing import Annotated, Literal
+
 import numpy as np
 import numpy.typing as npt
+from pydantic import Field
 
-from edge.config import WaveSimStream
 from edge.drivers.pacing import PacedSim
+from edge.schema import Float, StreamBase
+
+
+class WaveSimStream(StreamBase):
+    """A LabJack-T8-like simulated stream: wave-like signals plus noise, in volts."""
+
+    driver: Literal["wave_sim"]
+    wave_period_s: Annotated[Float, Field(gt=0)] = 8.0
+    noise_v: Annotated[Float, Field(ge=0)] = 0.002
+    drift_ppm: Float = 0.0
+
 
 _NOISE_TABLE = 1 << 20
 

@@ -4,15 +4,14 @@ backpack (which decodes nibbles the way the LCD does), NACK handling and the dis
 from __future__ import annotations
 
 import logging
-import threading
 
 import pytest
 
-from edge.config import LcdDisplay, parse_config
+from edge.config.load import parse_config
 from edge.display import DisplayLoop, create_displays, parse_line
-from edge.drivers.hd44780 import Hd44780Pcf8574, lcd_bytes
-from edge.drivers.pacing import VirtualClock
-from edge.drivers.sim_smbus import SimLcd, SimSmbus2
+from edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay, lcd_bytes
+from edge.drivers.pacing import VirtualTime
+from edge.drivers.sim_smbus import SimLcd, SimSmbus2, lcd_transport
 from edge.errors import ConfigError
 
 NODE = """\
@@ -97,7 +96,7 @@ def test_lcd_bytes_map_the_degree_sign_to_the_rom_and_pad_to_the_width() -> None
 
 
 def test_the_4_bit_start_up_and_text_reach_the_lcd_as_the_hd44780_decodes_them() -> None:
-    clock = VirtualClock()
+    clock = VirtualTime()
     lcd = SimLcd(None, clock)
     bus = SimSmbus2(clock)
     bus.attach(1, 0x27, lcd)
@@ -114,23 +113,30 @@ def test_the_4_bit_start_up_and_text_reach_the_lcd_as_the_hd44780_decodes_them()
     assert lcd.instructions - before == 1 + 16
 
 
+def _sim_loop(cfg, values, events, clock):  # type: ignore[no-untyped-def]
+    """A display loop on the simulated LCD the driver table would give it."""
+    bus = lcd_transport(cfg, clock)
+    loop = DisplayLoop("lcd", cfg, values, events, bus, clock=clock, sleep=lambda s: None)
+    return loop, bus.buses[cfg.bus][cfg.address]
+
+
 def test_the_display_loop_shows_live_values_from_latest() -> None:
     _, cfg = _node(lines='["TC {tc.substrate:6.1f}\\u00b0C", "CJ {tc.cj:.2f}"]')
     values, events = Values(), Events()
-    display = DisplayLoop("lcd", cfg, values, events, clock=VirtualClock())
+    display, lcd = _sim_loop(cfg, values, events, VirtualTime())
     assert display.refresh()
-    assert display.sim_lcd.lines() == ["TC ------°C     ", "CJ ----         "]
+    assert lcd.lines() == ["TC ------°C     ", "CJ ----         "]
     values.values.update({("tc", "substrate"): 431.25, ("tc", "cj"): 25.0625})
     assert display.refresh()
-    assert display.sim_lcd.lines() == ["TC  431.2°C     ", "CJ 25.06        "]
+    assert lcd.lines() == ["TC  431.2°C     ", "CJ 25.06        "]
     assert events.seen == []
 
 
 def test_nacks_are_retried_then_raise_one_event_and_recovery_raises_another() -> None:
     sim = "{faults: [{kind: nack, at_s: 1, for_s: 2}]}"
     _, cfg = _node(sim=sim)
-    clock, values, events = VirtualClock(), Values(), Events()
-    display = DisplayLoop("lcd", cfg, values, events, clock=clock)
+    clock, values, events = VirtualTime(), Values(), Events()
+    display, lcd = _sim_loop(cfg, values, events, clock)
     results = []
     for i in range(8):
         values.values[("tc", "substrate")] = 100.0 + i  # a new value: the row must go out
@@ -142,7 +148,7 @@ def test_nacks_are_retried_then_raise_one_event_and_recovery_raises_another() ->
         (logging.INFO, "display_ok"),
     ]
     assert "2 attempt(s)" in events.seen[0][2]
-    assert display.sim_lcd.lines()[0].startswith("TC")  # re-initialised after the outage
+    assert lcd.lines()[0].startswith("TC")  # re-initialised after the outage
 
 
 def test_create_displays_gives_loops_that_start_and_close() -> None:
@@ -151,16 +157,13 @@ def test_create_displays_gives_loops_that_start_and_close() -> None:
     values.values[("tc", "substrate")] = 99.0
     (display,) = create_displays(node, values, events)
     display.start()
-    done = threading.Event()
-    for _ in range(200):
-        if display.refreshes:
-            done.set()
-            break
-        threading.Event().wait(0.01)
-    display.close()
-    display.close()  # idempotent
-    assert done.is_set(), "the loop refreshed the display within 2 s"
-    assert display.sim_lcd.lines()[0] == "TC   99.0°C     "
+    try:
+        assert display.refreshed.wait(30), "the loop never refreshed the display"
+    finally:
+        display.close()
+        display.close()  # idempotent
+    lcd = display.smbus.buses[1][0x27]
+    assert lcd.lines()[0] == "TC   99.0°C     "
 
 
 def test_display_config_defaults_are_a_16x2_lcd_at_0x27_on_bus_1() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from edge.config import parse_config
+from edge.config.load import parse_config
 from edge.errors import ConfigError
 
 HEAD = "site: s\nnodes:\n  n:\n    streams:\n"

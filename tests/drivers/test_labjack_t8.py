@@ -17,17 +17,12 @@ import time
 import numpy as np
 import pytest
 
-from edge.config import LabJackT8PollStream, LabJackT8Stream, parse_config
-from edge.drivers.labjack_t8 import (
-    CORE_TIMER_HZ,
-    CoreTimer,
-    LabJackT8,
-    LabJackT8Poll,
-    T8Outputs,
-    decode_scans,
-    load_ljm,
-)
-from edge.drivers.pacing import VirtualClock
+from edge.config.load import parse_config
+from edge.device_time import DeviceTimeFit
+from edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs, load_ljm
+from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream, decode_scans
+from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
+from edge.drivers.pacing import VirtualTime
 from edge.drivers.sim_ljm import SimLJM, errorcodes
 from edge.errors import (
     ConfigError,
@@ -36,7 +31,6 @@ from edge.errors import (
     DeviceNotFound,
     DriverUnavailable,
 )
-from edge.timebase import ScanClock
 from edge.wire import SampleStatus
 from tests.drivers.fakes import DATA
 from tests.procs import REPO
@@ -57,10 +51,10 @@ def _stream(sim: str, rate: float = 10_000, scans: int = 1000, chans: int = 8, e
 
 def _driver(sim: str, **kw):  # type: ignore[no-untyped-def]
     cfg = _stream(sim, **kw)
-    clock = VirtualClock()
+    clock = VirtualTime()
     assert cfg.sim is not None
     ljm = SimLJM(cfg.sim, clock)
-    return LabJackT8(cfg, ljm=ljm, clock=clock), ljm, clock
+    return LabJackT8(cfg, transport=ljm, clock=clock), ljm, clock
 
 
 # --- pure decoding --------------------------------------------------------------------------
@@ -127,9 +121,9 @@ def test_each_channel_gets_its_range_and_ain() -> None:
     cfg = parse_config(text + extra, "t").nodes["wec"].streams["t8"]
     assert isinstance(cfg, LabJackT8Stream)
     assert cfg.sim is not None
-    clock = VirtualClock()
+    clock = VirtualTime()
     ljm = SimLJM(cfg.sim, clock)
-    d = LabJackT8(cfg, ljm=ljm, clock=clock)
+    d = LabJackT8(cfg, transport=ljm, clock=clock)
     d.open()
     assert ljm.device.registers["AIN6_RANGE"] == 0.3
     assert ljm.device.registers["AIN1_RANGE"] == 2.4
@@ -229,7 +223,7 @@ def test_a_stream_error_from_config_is_raised_and_the_stream_restarts() -> None:
 
 def test_device_time_fit_survives_a_stream_restart_and_restarts_after_a_power_cycle() -> None:
     d, _, clock = _driver("{seed: 9, faults: [{kind: unplug, at_s: 20, for_s: 1}]}")
-    fit = ScanClock(10_000)
+    fit = DeviceTimeFit(10_000)
     d.open()
     index = 0
 
@@ -259,7 +253,7 @@ def test_device_time_fit_survives_a_stream_restart_and_restarts_after_a_power_cy
 def test_closing_during_a_read_ends_it_as_interrupted_not_as_an_error() -> None:
     cfg = _stream("{seed: 10}", rate=1000, scans=5000)  # 5 s per read, in real time
     assert cfg.sim is not None
-    d = LabJackT8(cfg, ljm=SimLJM(cfg.sim))
+    d = LabJackT8(cfg, transport=SimLJM(cfg.sim))
     d.open()
     outcome: list[BaseException] = []
 
@@ -290,9 +284,9 @@ def test_polled_ain_and_dio_are_stamped_by_the_core_timer() -> None:
     cfg = parse_config(text, "t").nodes["n"].streams["io"]
     assert isinstance(cfg, LabJackT8PollStream)
     assert cfg.sim is not None
-    clock = VirtualClock()
+    clock = VirtualTime()
     ljm = SimLJM(cfg.sim, clock)
-    d = LabJackT8Poll(cfg, ljm=ljm, clock=clock)
+    d = LabJackT8Poll(cfg, transport=ljm, clock=clock)
     d.open()
     blocks = [d.read() for _ in range(30)]
     assert ljm.device.registers["AIN2_RANGE"] == 4.8
@@ -306,7 +300,7 @@ def test_polled_ain_and_dio_are_stamped_by_the_core_timer() -> None:
 
 def test_outputs_return_the_devices_readback_and_refuse_what_the_t8_cannot_do() -> None:
     cfg = _stream("{seed: 12}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     with T8Outputs(SimLJM(cfg.sim, clock)) as out:  # type: ignore[arg-type]
         assert out.set_dac(0, 2.5) == 2.5
         assert out.set_dio("FIO4", True) is True
@@ -357,7 +351,7 @@ LJM_FUNCTIONS = [
 def test_the_fake_ljm_has_labjack_ljms_functions_signatures_codes_and_error_type() -> None:
     with contextlib.redirect_stdout(io.StringIO()):  # it prints when libLabJackM is missing
         from labjack import ljm  # type: ignore[import-not-found, unused-ignore]
-    fake = SimLJM(_stream("{}").sim, VirtualClock())  # type: ignore[arg-type]
+    fake = SimLJM(_stream("{}").sim, VirtualTime())  # type: ignore[arg-type]
     for name in LJM_FUNCTIONS:
         real = list(inspect.signature(getattr(ljm, name)).parameters)
         ours = list(inspect.signature(getattr(fake, name)).parameters)

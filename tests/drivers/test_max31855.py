@@ -10,9 +10,10 @@ import logging
 import numpy as np
 import pytest
 
-from edge.config import Max31855Stream, parse_config
-from edge.drivers.max31855 import Max31855, decode_max31855, encode_max31855
-from edge.drivers.pacing import VirtualClock
+from edge.config.load import parse_config
+from edge.drivers.max31855 import Max31855, Max31855Stream, decode_max31855, encode_max31855
+from edge.drivers.pacing import VirtualTime
+from edge.drivers.table import create_driver
 from edge.errors import DeviceNotFound, DriverUnavailable
 from edge.wire import SampleStatus
 from tests.drivers.fakes import DATA, FakeSpiDev
@@ -72,8 +73,8 @@ def test_driver_opens_spi_mode_0_and_decodes_each_poll_in_virtual_time() -> None
     frames = [list(bytes.fromhex(r["hex"])) for r in TABLE["frames"][:1]] * 4
     spi = FakeSpiDev(frames)
     cfg = _stream(", bus: 0, device: 1, max_speed_hz: 2000000", rate=4)
-    clock = VirtualClock()
-    d = Max31855(cfg, spi=spi, clock=clock)
+    clock = VirtualTime()
+    d = Max31855(cfg, transport=spi, clock=clock)
     d.open()
     t0 = clock.monotonic_ns()
     blocks = [d.read() for _ in range(4)]
@@ -92,7 +93,7 @@ def test_open_thermocouple_makes_the_sample_invalid_with_one_event_and_recovers(
     ok = list(bytes.fromhex("01901900"))
     oc = list(bytes.fromhex("00011911"))
     spi = FakeSpiDev([ok, oc, oc, oc, ok])
-    d = Max31855(_stream(), spi=spi, clock=VirtualClock())
+    d = Max31855(_stream(), transport=spi, clock=VirtualTime())
     d.open()
     blocks = [d.read() for _ in range(5)]
     statuses = [None if b.status is None else b.status.tolist() for b in blocks]
@@ -106,7 +107,7 @@ def test_open_thermocouple_makes_the_sample_invalid_with_one_event_and_recovers(
 
 def test_a_floating_bus_is_a_comm_error_on_both_channels_not_a_crash() -> None:
     spi = FakeSpiDev([[0xFF] * 4, OSError(5, "Input/output error")])
-    d = Max31855(_stream(), spi=spi, clock=VirtualClock())
+    d = Max31855(_stream(), transport=spi, clock=VirtualTime())
     d.open()
     first, second = d.read(), d.read()
     assert first.status is not None
@@ -120,7 +121,7 @@ def test_a_floating_bus_is_a_comm_error_on_both_channels_not_a_crash() -> None:
 
 def test_missing_spi_device_is_device_not_found_keeping_the_errno() -> None:
     spi = FakeSpiDev(open_error=FileNotFoundError(2, "No such file or directory"))
-    d = Max31855(_stream(), spi=spi, clock=VirtualClock())
+    d = Max31855(_stream(), transport=spi, clock=VirtualTime())
     with pytest.raises(DeviceNotFound, match=r"/dev/spidev0\.0 not found: enable SPI") as err:
         d.open()
     assert err.value.code == 2
@@ -144,7 +145,7 @@ def test_rates_above_the_chips_conversion_rate_are_refused_by_config() -> None:
 
 def test_simulated_chip_heats_during_a_weld_layer_and_cools_between_layers() -> None:
     cfg = _stream(", sim: {ambient_c: 24, peak_c: 450, layer_s: 20, cool_s: 15, seed: 3}")
-    d = Max31855(cfg, clock=VirtualClock())
+    d = create_driver(cfg, VirtualTime())  # the table gives it the simulated chip
     d.open()
     temps = np.array([d.read().raw[0, 0] for _ in range(4 * 35)])  # one layer cycle at 4 Hz
     assert np.all(np.abs(temps * 4 - np.round(temps * 4)) < 1e-9)  # 0.25 °C steps
@@ -157,7 +158,7 @@ def test_simulated_chip_heats_during_a_weld_layer_and_cools_between_layers() -> 
 
 def test_simulated_faults_from_config_reach_the_samples() -> None:
     cfg = _stream(", sim: {seed: 1, faults: [{kind: open_circuit, at_s: 1, for_s: 1}]}")
-    d = Max31855(cfg, clock=VirtualClock())
+    d = create_driver(cfg, VirtualTime())  # the table gives it the simulated chip
     d.open()
     blocks = [d.read() for _ in range(16)]
     bad = [i for i, b in enumerate(blocks) if b.status is not None]

@@ -7,14 +7,16 @@ import json
 
 import pytest
 
-from edge.config import Max31856Stream, parse_config
+from edge.config.load import parse_config
 from edge.drivers.max31856 import (
     Max31856,
+    Max31856Stream,
     config_registers,
     decode_max31856,
     encode_max31856,
 )
-from edge.drivers.pacing import VirtualClock
+from edge.drivers.pacing import VirtualTime
+from edge.drivers.table import create_driver
 from edge.errors import ConfigError, DeviceNotFound
 from edge.wire import SampleStatus
 from tests.drivers.fakes import DATA, FakeSpiDev
@@ -79,7 +81,7 @@ def test_driver_writes_its_configuration_reads_it_back_and_polls_registers_0a_to
     cr0, cr1 = 0x91, 0x03
     regs = encode_max31856(250.5, 23.25)
     spi = FakeSpiDev([[0xFF] * 4, [0xFF, cr0, cr1, 0x00], [0xFF, *regs]])
-    d = Max31856(_stream(), spi=spi, clock=VirtualClock())
+    d = Max31856(_stream(), transport=spi, clock=VirtualTime())
     d.open()
     block = d.read()
     assert spi.mode == 1
@@ -92,15 +94,15 @@ def test_driver_writes_its_configuration_reads_it_back_and_polls_registers_0a_to
 
 def test_a_chip_that_does_not_echo_its_configuration_is_not_found() -> None:
     spi = FakeSpiDev([[0xFF] * 4, [0xFF] * 4])  # nothing on MISO
-    d = Max31856(_stream(), spi=spi, clock=VirtualClock())
+    d = Max31856(_stream(), transport=spi, clock=VirtualTime())
     with pytest.raises(DeviceNotFound, match=r"no MAX31856 answering"):
         d.open()
     assert spi.closed
 
 
 def test_simulated_chip_in_continuous_mode_follows_the_weld_cycle() -> None:
-    d = Max31856(
-        _stream(", sim: {seed: 2, peak_c: 400, layer_s: 10, cool_s: 10}"), clock=VirtualClock()
+    d = create_driver(
+        _stream(", sim: {seed: 2, peak_c: 400, layer_s: 10, cool_s: 10}"), VirtualTime()
     )
     d.open()
     temps = [d.read().raw[0, 0] for _ in range(80)]  # 20 s at 4 Hz
@@ -109,9 +111,9 @@ def test_simulated_chip_in_continuous_mode_follows_the_weld_cycle() -> None:
 
 
 def test_one_shot_mode_starts_a_conversion_and_waits_for_it() -> None:
-    clock = VirtualClock()
+    clock = VirtualTime()
     cfg = _stream(", conversion: one_shot, averaging: 2, sim: {seed: 4}", rate=2)
-    d = Max31856(cfg, clock=clock)
+    d = create_driver(cfg, clock)
     d.open()
     block = d.read()
     assert block.status is None
@@ -121,7 +123,7 @@ def test_one_shot_mode_starts_a_conversion_and_waits_for_it() -> None:
 
 def test_simulated_open_thermocouple_is_invalid_with_an_event() -> None:
     cfg = _stream(", sim: {seed: 5, faults: [{kind: open_circuit, at_s: 2, for_s: 2}]}")
-    d = Max31856(cfg, clock=VirtualClock())
+    d = create_driver(cfg, VirtualTime())  # the table gives it the simulated chip
     d.open()
     blocks = [d.read() for _ in range(24)]
     bad = [i for i, b in enumerate(blocks) if b.status is not None]

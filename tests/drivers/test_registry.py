@@ -6,11 +6,12 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from typing import Literal
 
 import pytest
 
-from edge.config import DRIVERS, load_config
-from edge.drivers import REGISTRY, create_driver
+from edge.config.load import load_config
+from edge.drivers.table import DRIVERS, create_driver
 from edge.errors import DriverError
 from tests.procs import REPO
 
@@ -28,7 +29,7 @@ def _loaded_vendor_modules(code: str) -> list[str]:
 
 def test_importing_the_edge_and_every_driver_module_loads_no_vendor_library() -> None:
     code = (
-        "import edge.agent, edge.config, edge.display, edge.drivers\n"
+        "import edge.agent, edge.config.load, edge.display, edge.drivers.table\n"
         "import edge.drivers.labjack_t8, edge.drivers.max31855, edge.drivers.max31856\n"
         "import edge.drivers.sht3x, edge.drivers.hd44780"
     )
@@ -37,8 +38,9 @@ def test_importing_the_edge_and_every_driver_module_loads_no_vendor_library() ->
 
 def test_running_the_demo_sites_simulated_drivers_loads_no_vendor_library() -> None:
     code = (
-        "from edge.config import demo_config_path, load_config\n"
-        "from edge.drivers import create_driver\n"
+        "from edge.config.load import load_config\n"
+        "from edge.config.site import demo_config_path\n"
+        "from edge.drivers.table import create_driver\n"
         "from edge.display import create_displays\n"
         "site = load_config(demo_config_path())\n"
         "for node in site.nodes.values():\n"
@@ -49,8 +51,9 @@ def test_running_the_demo_sites_simulated_drivers_loads_no_vendor_library() -> N
     assert _loaded_vendor_modules(code) == []
 
 
-def test_every_driver_the_schema_accepts_is_registered() -> None:
-    assert set(REGISTRY) == set(DRIVERS)
+def test_every_row_of_the_driver_table_names_its_own_schema() -> None:
+    for name, spec in DRIVERS.items():
+        assert spec.schema.model_fields["driver"].annotation == Literal[name], name
 
 
 def test_an_unknown_driver_name_is_a_driver_error() -> None:

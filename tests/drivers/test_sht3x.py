@@ -8,9 +8,9 @@ import json
 
 import pytest
 
-from edge.config import Sht3xStream, parse_config
-from edge.drivers.pacing import VirtualClock
-from edge.drivers.sht3x import CrcError, Sht3x, crc8, decode_sht3x, encode_sht3x
+from edge.config.load import parse_config
+from edge.drivers.pacing import VirtualTime
+from edge.drivers.sht3x import CrcError, Sht3x, Sht3xStream, crc8, decode_sht3x, encode_sht3x
 from edge.drivers.sim_smbus import SimSht3x, SimSmbus2
 from edge.errors import DeviceNotFound
 from edge.wire import SampleStatus
@@ -50,12 +50,12 @@ def test_a_corrupted_crc_is_refused() -> None:
 
 def _driver(extra: str = "", retries: int = 3) -> tuple[Sht3x, SimSht3x]:
     cfg = _stream(f", retries: {retries}, sim: {{seed: 1}}{extra}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     bus = SimSmbus2(clock)
     assert cfg.sim is not None
     sensor = SimSht3x(cfg.sim, clock)
     bus.attach(1, 0x44, sensor)
-    return Sht3x(cfg, smbus=bus, clock=clock), sensor
+    return Sht3x(cfg, transport=bus, clock=clock), sensor
 
 
 def test_driver_measures_temperature_and_humidity_once_per_poll() -> None:
@@ -87,11 +87,11 @@ def test_occasional_nacks_and_crc_errors_are_retried_and_the_samples_stay_valid(
         " {kind: crc_error, at_s: 0, probability: 0.3}]"
     )
     cfg = _stream(", retries: 6, sim: {seed: 1" + faults + "}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     bus = SimSmbus2(clock)
     assert cfg.sim is not None
     bus.attach(1, 0x44, SimSht3x(cfg.sim, clock))
-    d = Sht3x(cfg, smbus=bus, clock=clock)
+    d = Sht3x(cfg, transport=bus, clock=clock)
     d.open()
     blocks = [d.read() for _ in range(20)]
     invalid = sum(b.status is not None for b in blocks)
@@ -104,11 +104,11 @@ def test_occasional_nacks_and_crc_errors_are_retried_and_the_samples_stay_valid(
 
 def test_a_sensor_that_keeps_failing_gives_invalid_samples_and_one_event() -> None:
     cfg = _stream(", retries: 2, sim: {seed: 1, faults: [{kind: crc_error, at_s: 1, for_s: 3}]}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     bus = SimSmbus2(clock)
     assert cfg.sim is not None
     bus.attach(1, 0x44, SimSht3x(cfg.sim, clock))
-    d = Sht3x(cfg, smbus=bus, clock=clock)
+    d = Sht3x(cfg, transport=bus, clock=clock)
     d.open()
     blocks = [d.read() for _ in range(6)]
     status = [None if b.status is None else b.status.tolist() for b in blocks]
@@ -122,17 +122,17 @@ def test_a_sensor_that_keeps_failing_gives_invalid_samples_and_one_event() -> No
 
 def test_no_sensor_at_the_address_is_device_not_found() -> None:
     cfg = _stream(", address: 0x45, sim: {}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     bus = SimSmbus2(clock)
     assert cfg.sim is not None
     bus.attach(1, 0x44, SimSht3x(cfg.sim, clock))  # wired at 0x44, configured at 0x45
     with pytest.raises(DeviceNotFound, match=r"SHT3x at 0x45 on /dev/i2c-1: no answer \(NACK\)"):
-        Sht3x(cfg, smbus=bus, clock=clock).open()
+        Sht3x(cfg, transport=bus, clock=clock).open()
 
 
 def test_a_missing_i2c_bus_is_device_not_found() -> None:
-    clock = VirtualClock()
-    d = Sht3x(_stream(", bus: 3, sim: {}"), smbus=SimSmbus2(clock), clock=clock)
+    clock = VirtualTime()
+    d = Sht3x(_stream(", bus: 3, sim: {}"), transport=SimSmbus2(clock), clock=clock)
     with pytest.raises(DeviceNotFound, match=r"/dev/i2c-3 not found: enable I2C"):
         d.open()
 
@@ -145,10 +145,10 @@ def test_the_driver_works_with_smbus2s_own_i2c_msg() -> None:
         i2c_msg = smbus2.i2c_msg  # type: ignore[assignment]
 
     cfg = _stream(", sim: {seed: 3}")
-    clock = VirtualClock()
+    clock = VirtualTime()
     bus = RealMsgBus(clock)
     assert cfg.sim is not None
     bus.attach(1, 0x44, SimSht3x(cfg.sim, clock))
-    d = Sht3x(cfg, smbus=bus, clock=clock)
+    d = Sht3x(cfg, transport=bus, clock=clock)
     d.open()
     assert d.read().status is None

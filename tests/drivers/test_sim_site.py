@@ -65,7 +65,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[dict, dict]]
         [
             sys.executable,
             "-m",
-            "hub.cli",
+            "fleetdaq",
             "demo",
             "--config",
             str(cfg),
@@ -173,7 +173,7 @@ def test_a_cli_edge_naming_a_real_t8_without_ljm_fails_that_node_in_one_line(
     try:
         wait_for_port(port)
         r = subprocess.run(
-            [sys.executable, "-m", "hub.cli", "edge", "--config", str(cfg), "--node", "wec"],
+            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(cfg), "--node", "wec"],
             cwd=REPO,
             capture_output=True,
             text=True,
@@ -188,7 +188,7 @@ def test_a_cli_edge_naming_a_real_t8_without_ljm_fails_that_node_in_one_line(
         assert lines[0].startswith(f"{cfg}: nodes.wec: the LabJack T8 needs")
         assert "labjack.com/ljm" in lines[0]
         other = subprocess.Popen(
-            [sys.executable, "-m", "hub.cli", "edge", "--config", str(cfg), "--node", "shore"],
+            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(cfg), "--node", "shore"],
             cwd=REPO,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
-from edge.wire import Event
-from hub.fleet import FleetTime
+from edge.messages import Event, KeyValue, NodeHealth, TimeSyncStatus
+from hub.fleet_time import FleetTime
 from ptp.status import Check, Level, SyncState, TimeStatus
 
 GM_A, GM_B = "aaaaaa.fffe.000001", "bbbbbb.fffe.000002"
 
 
-def health(state: SyncState, gm: str, at: int, offset: int = 1_000, level=Level.OK) -> dict:
+def health(state: SyncState, gm: str, at: int, offset: int = 1_000, level=Level.OK) -> NodeHealth:
     status = TimeStatus(
         source="ptp4l",
         state=state,
@@ -21,7 +22,7 @@ def health(state: SyncState, gm: str, at: int, offset: int = 1_000, level=Level.
         grandmaster_id=gm,
         port_state="SLAVE" if state is SyncState.LOCKED else "LISTENING",
     )
-    return {"node": "x", "clock": status.to_dict()}
+    return NodeHealth(at, "x", "0", 0.0, None, (), TimeSyncStatus.of(status))  # type: ignore[arg-type]
 
 
 class Emitted(list):
@@ -86,8 +87,9 @@ def test_a_grandmaster_change_and_a_split_fleet_are_raised():
     fleet = FleetTime(events, split_grace_s=0)
     fleet.update("wec", health(SyncState.LOCKED, GM_A, 10))
     fleet.update("shore", health(SyncState.LOCKED, GM_A, 10))
-    message = f"grandmaster changed from {GM_A} to {GM_B} (state locked, offset 1 ns)"
-    fleet.on_event(Event(20, "wec", logging.WARNING, "clock", "grandmaster_changed", message))
+    # The hub reacts to the event's structured fields, never to its text.
+    fields = (KeyValue("old", GM_A), KeyValue("new", GM_B))
+    fleet.on_event(Event(20, "wec", logging.WARNING, "clock", "grandmaster_changed", "?", fields))
     assert "node_grandmaster_changed" in events.tags()
     assert events.tags()[-1] == "grandmasters_differ"
     assert events[-1][0] == logging.ERROR
@@ -109,9 +111,12 @@ def test_a_node_that_leaves_is_dropped_from_the_view():
 
 def test_health_without_a_clock_reading_is_ignored():
     fleet = FleetTime(Emitted())
-    fleet.update("wec", {"clock": {"source": "none", "state": "unsynced"}})
-    fleet.update("wec", {"clock": {"source": "ptp4l", "state": "unsynced"}})
-    fleet.update("wec", {"streams": {}})
+    nothing = NodeHealth(1, "wec", "0", 0.0, None, (), TimeSyncStatus.unknown())  # type: ignore[arg-type]
+    not_yet = NodeHealth(1, "wec", "0", 0.0, None, (), TimeSyncStatus.unknown("ptp4l"))  # type: ignore[arg-type]
+    nonsense = replace(health(SyncState.LOCKED, GM_A, 10), clock=replace(TimeSyncStatus.of(
+        TimeStatus("ptp4l", SyncState.LOCKED, (), 5)), state="unsynced"))  # fmt: skip
+    for h in (nothing, not_yet, nonsense):
+        fleet.update("wec", h)
     assert fleet.view().nodes == ()
 
 

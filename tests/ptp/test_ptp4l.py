@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.clock import PollingClockMonitor
+from edge.time_sync import PollingTimeSyncMonitor
 from ptp.checks import SOFTWARE
 from ptp.datasets import PortState
 from ptp.management import Ptp4lClient, snapshot_from
@@ -25,7 +25,7 @@ from tests.ptp.lab import REPO, wait_for
 
 def fleetdaq(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "hub.cli", *args],
+        [sys.executable, "-m", "fleetdaq", *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -142,9 +142,11 @@ def test_status_command_exits_by_level_and_prints_a_table(baseline: PtpLab, tmp_
 class Recorded:
     def __init__(self) -> None:
         self.events: list[tuple[float, int, str, str]] = []
+        self.fields: list[dict[str, object]] = []
 
-    def __call__(self, level: int, tag: str, message: str) -> None:
+    def __call__(self, level: int, tag: str, message: str, **fields: object) -> None:
         self.events.append((time.monotonic(), level, tag, message))
+        self.fields.append(fields)
 
     def first(self, tag: str, after: float = 0.0) -> tuple[float, int, str, str] | None:
         return next((e for e in self.events if e[2] == tag and e[0] >= after), None)
@@ -152,7 +154,7 @@ class Recorded:
 
 def test_killing_the_grandmaster_is_holdover_at_once_then_freerun(baseline: PtpLab):
     events = Recorded()
-    monitor = PollingClockMonitor(Ptp4lReader(baseline.s1.uds), events, poll_s=0.25)
+    monitor = PollingTimeSyncMonitor(Ptp4lReader(baseline.s1.uds), events, poll_s=0.25)
     monitor.start()
     try:
         assert events.first("clock_locked") is not None
@@ -174,13 +176,18 @@ def test_killing_the_grandmaster_is_holdover_at_once_then_freerun(baseline: PtpL
 
 def test_a_better_grandmaster_takes_over_and_the_change_is_raised(baseline: PtpLab):
     events = Recorded()
-    monitor = PollingClockMonitor(Ptp4lReader(baseline.s1.uds), events, poll_s=0.25)
+    monitor = PollingTimeSyncMonitor(Ptp4lReader(baseline.s1.uds), events, poll_s=0.25)
     monitor.start()
     try:
         gm2 = baseline.start_gm2()
         gm2_id = baseline.identity(gm2)
         changed = wait_for(lambda: events.first(GRANDMASTER_CHANGED), 10, "grandmaster change")
         assert f"from {baseline.gm1_identity} to {gm2_id}" in changed[3]
+        # What the hub reacts to: structured fields, not the text.
+        assert events.fields[events.events.index(changed)] == {
+            "old": baseline.gm1_identity,
+            "new": gm2_id,
+        }
         wait_for(lambda: locked_to(baseline.s1.uds, gm2_id), 10, "lock to gm2")
         assert monitor.quality.grandmaster_id in ("", gm2_id)
         wait_for(lambda: monitor.quality.grandmaster_id == gm2_id, 5, "quality says gm2")

@@ -104,7 +104,7 @@ def test_edges_stamp_ptp_quality_and_the_hub_raises_grandmaster_events(
             wait_for(lambda n=node: first(log, "node_clock_state", n), 30, f"{node} in the fleet")
 
         fleet = subprocess.run(
-            [sys.executable, "-m", "hub.cli", "ptp", "fleet", "--config", str(cfg), "--json"],
+            [sys.executable, "-m", "fleetdaq", "ptp", "fleet", "--config", str(cfg), "--json"],
             cwd=REPO,
             capture_output=True,
             text=True,
@@ -177,7 +177,7 @@ def test_edges_stamp_ptp_quality_and_the_hub_raises_grandmaster_events(
 
 def fleet_json(cfg: Path) -> str:
     return subprocess.run(
-        [sys.executable, "-m", "hub.cli", "ptp", "fleet", "--config", str(cfg), "--json"],
+        [sys.executable, "-m", "fleetdaq", "ptp", "fleet", "--config", str(cfg), "--json"],
         cwd=REPO,
         capture_output=True,
         text=True,

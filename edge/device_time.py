@@ -41,7 +41,7 @@ class _Pair:
     """Host time, ns, relative to the fit's origin."""
 
 
-class ScanClock:
+class DeviceTimeFit:
     """Fits host time (int ns) against device time for one stream and stamps scans from it.
 
     Args:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from edge.timebase import ScanClock
+from edge.device_time import DeviceTimeFit
 
 T0 = 1_795_000_000_000_000_000
 
@@ -12,7 +12,7 @@ T0 = 1_795_000_000_000_000_000
 def test_fit_finds_the_drift_and_stamps_far_closer_to_truth_than_reads():
     rate = 10_000.0
     true_period = 1e9 / (rate * (1 + 50e-6))  # device 50 ppm fast
-    clock = ScanClock(rate)
+    clock = DeviceTimeFit(rate)
     rng = np.random.default_rng(3)
     scans = 1000
     errors_fit, errors_read = [], []
@@ -36,7 +36,7 @@ def test_fit_finds_the_drift_and_stamps_far_closer_to_truth_than_reads():
 
 
 def test_first_batch_uses_the_nominal_period():
-    clock = ScanClock(4.0)
+    clock = DeviceTimeFit(4.0)
     clock.observe(1, T0)
     assert clock.time_of(1) == T0
     assert clock.time_of(0) == T0 - 250_000_000
@@ -47,7 +47,7 @@ def test_first_batch_uses_the_nominal_period():
 
 
 def _device_run(
-    clock: ScanClock,
+    clock: DeviceTimeFit,
     seconds: float,
     reads_per_s: float = 100.0,
     rate: float = 10_000.0,
@@ -79,7 +79,7 @@ def _device_run(
 
 
 def test_device_clock_fit_meets_10_us_p99_once_settled_with_5_ms_read_jitter() -> None:
-    clock = ScanClock(10_000.0)
+    clock = DeviceTimeFit(10_000.0)
     errors = np.abs(_device_run(clock, 300.0))
     settled = errors[60 * 100 :]  # after the first minute
     assert np.percentile(settled, 99) < 10_000, np.percentile(settled, [50, 99, 100])
@@ -87,7 +87,7 @@ def test_device_clock_fit_meets_10_us_p99_once_settled_with_5_ms_read_jitter() -
 
 
 def test_a_batch_is_never_stamped_later_than_it_was_read() -> None:
-    clock = ScanClock(1000.0)
+    clock = DeviceTimeFit(1000.0)
     rng = np.random.default_rng(5)
     for k in range(1, 2000):
         last = k * 100 - 1
@@ -97,7 +97,7 @@ def test_a_batch_is_never_stamped_later_than_it_was_read() -> None:
 
 
 def test_a_reopened_stream_keeps_the_fit_when_the_device_clock_ran_on() -> None:
-    clock = ScanClock(10_000.0)
+    clock = DeviceTimeFit(10_000.0)
     _device_run(clock, 60.0)
     # The stream restarts 2 s later: scan index from 0 again, the device clock continued.
     restart_device = 7_000_000_000 + round(62.0e9)
@@ -110,11 +110,11 @@ def test_a_reopened_stream_keeps_the_fit_when_the_device_clock_ran_on() -> None:
 
 
 def test_a_power_cycled_device_or_a_host_clock_step_restarts_the_fit() -> None:
-    clock = ScanClock(10_000.0)
+    clock = DeviceTimeFit(10_000.0)
     _device_run(clock, 10.0)
     clock.observe(5, T0 + 20_000_000_000, 123_456)  # index and device clock back to the start
     assert clock.restarts == 1
-    clock = ScanClock(10_000.0)
+    clock = DeviceTimeFit(10_000.0)
     _device_run(clock, 10.0)
     last, host, device = 100_099, T0 + round(10.01e9 / (1 + 50e-6)), 7_000_000_000 + 10_010_000_000
     clock.observe(last, host - 50_000_000, device)  # the host clock stepped 50 ms back

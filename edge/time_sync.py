@@ -1,10 +1,13 @@
-"""The node's clock monitor: what every batch says about the host clock at acquisition.
+"""Time-sync monitoring: is the host clock (CLOCK_REALTIME) disciplined to the grandmaster?
 
-`make_clock_monitor` builds the monitor a node's config asks for. The agent reads `quality`
-for every batch (cheap: a field read) and puts `status()` into node health; the monitor polls
+Not to be confused with `edge.device_time` (fitting a device's own clock to the host clock) or
+`edge.drivers.pacing.TimeSource` (where a driver reads the time, virtual in tests).
+
+`make_time_sync_monitor` builds the monitor a node's config asks for. The agent reads `quality`
+for every batch (cheap: a field read) and puts `message()` into node health; the monitor polls
 its source (ptp4l over its management socket, or chronyc) on its own thread and calls
-`emit(level, tag, message)` when the clock state or the grandmaster changes, or when the
-checks' verdict does.
+`emit(level, tag, message, **fields)` when the clock state or the grandmaster changes, or when
+the checks' verdict does. A grandmaster change carries ``old`` and ``new`` as fields.
 """
 
 from __future__ import annotations
@@ -12,9 +15,10 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Protocol
 
-from edge.config import ClockConfig, NodeConfig
+from edge.config.node import ClockConfig, NodeConfig
+from edge.messages import TimeSyncStatus
 from ptp.checks import Thresholds, defaults_for
 from ptp.quality import UNSYNCED, ClockQuality
 from ptp.reader import ChronyReader, Ptp4lReader, Reader
@@ -30,16 +34,16 @@ from ptp.status import (
 
 log = logging.getLogger("fleetdaq.clock")
 
-Emit = Callable[[int, str, str], None]
-"""emit(level, tag, message): raise an event from the clock monitor."""
+Emit = Callable[..., None]
+"""emit(level, tag, message, **fields): raise an event from the time-sync monitor."""
 
 
-class ClockMonitor(Protocol):
+class TimeSyncMonitor(Protocol):
     @property
     def quality(self) -> ClockQuality: ...
 
-    def status(self) -> dict[str, Any]:
-        """The full status for node health (JSON-serialisable)."""
+    def message(self) -> TimeSyncStatus:
+        """The latest status, as node health carries it."""
         ...
 
     def start(self) -> None: ...
@@ -49,13 +53,13 @@ class ClockMonitor(Protocol):
         ...
 
 
-class NoClockMonitor:
+class NoTimeSyncMonitor:
     """Nothing checks the clock: every batch says unsynced."""
 
     quality: ClockQuality = UNSYNCED
 
-    def status(self) -> dict[str, Any]:
-        return {"source": "none", "state": "unsynced"}
+    def message(self) -> TimeSyncStatus:
+        return TimeSyncStatus.unknown()
 
     def start(self) -> None:
         pass
@@ -88,8 +92,8 @@ _STATE_LEVEL = {
 }
 
 
-class PollingClockMonitor:
-    """Polls a `ptp.reader` every `poll_s` on its own thread; `quality` and `status()` are
+class PollingTimeSyncMonitor:
+    """Polls a `ptp.reader` every `poll_s` on its own thread; `quality` and `message()` are
     the latest reading (start: UNSYNCED until the first reading)."""
 
     def __init__(self, reader: Reader, emit: Emit, poll_s: float = 0.5) -> None:
@@ -103,12 +107,12 @@ class PollingClockMonitor:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
 
-    def status(self) -> dict[str, Any]:
+    def message(self) -> TimeSyncStatus:
         with self._lock:
             status = self._status
         if status is None:
-            return {"source": self.reader.source, "state": "unsynced"}
-        return status.to_dict()
+            return TimeSyncStatus.unknown(self.reader.source)
+        return TimeSyncStatus.of(status)
 
     @property
     def last(self) -> TimeStatus | None:
@@ -146,6 +150,8 @@ class PollingClockMonitor:
                     logging.WARNING,
                     GRANDMASTER_CHANGED,
                     grandmaster_change_message(self._last_gm, new.grandmaster_id, new),
+                    old=self._last_gm,
+                    new=new.grandmaster_id,
                 )
             self._last_gm = new.grandmaster_id
         if old is None or old.state is not new.state:
@@ -161,7 +167,13 @@ class PollingClockMonitor:
             message = f"{before}{new.state.value}: {detail}"
             if problems and new.state is not SyncState.LOCKED:
                 message += f" ({problems})"
-            self.emit(_STATE_LEVEL[new.state], STATE_TAGS[new.state], message)
+            self.emit(
+                _STATE_LEVEL[new.state],
+                STATE_TAGS[new.state],
+                message,
+                state=new.state.value,
+                grandmaster=new.grandmaster_id,
+            )
         elif old.level is not new.level:
             problems = "; ".join(c.message for c in new.checks if c.level is not Level.OK)
             level = {Level.OK: logging.INFO, Level.WARN: logging.WARNING}.get(
@@ -182,10 +194,10 @@ class PollingClockMonitor:
         self.reader.close()
 
 
-def make_clock_monitor(node: NodeConfig, emit: Emit) -> ClockMonitor:
+def make_time_sync_monitor(node: NodeConfig, emit: Emit) -> TimeSyncMonitor:
     cfg = node.clock
     if cfg.source == "none":
-        return NoClockMonitor()
+        return NoTimeSyncMonitor()
     reader: Reader
     if cfg.source == "ptp4l":
         reader = Ptp4lReader(
@@ -199,4 +211,4 @@ def make_clock_monitor(node: NodeConfig, emit: Emit) -> ClockMonitor:
         )
     else:
         reader = ChronyReader(thresholds(cfg), frozenset(cfg.ignore_checks))
-    return PollingClockMonitor(reader, emit, cfg.poll_s)
+    return PollingTimeSyncMonitor(reader, emit, cfg.poll_s)

@@ -1,13 +1,14 @@
 """The fleet's time: every node's clock state, offset and grandmaster, side by side.
 
-Fed by node health (``health["clock"]``, the node's `ptp.status.TimeStatus`, ~1 Hz) and, to
-react faster, by the nodes' own clock events (the edge raises ``clock_<state>`` and
-``grandmaster_changed`` the moment its monitor sees the change). Each update carries the edge's
-time of reading, so an older health message arriving after a newer event changes nothing.
+Fed by typed node health (its `TimeSyncStatus`, ~1 Hz) and, to react faster, by the nodes'
+own clock events from the event bus (the edge raises ``clock_<state>`` and
+``grandmaster_changed`` the moment its monitor sees the change; their structured fields carry
+the state and the grandmasters). Each update carries the edge's time of reading, so an older
+health message arriving after a newer event changes nothing.
 
-Raises hub events (source ``fleet``) through ``emit(level, source, tag, message)`` when a node
-loses or regains lock, changes grandmaster, and when the locked nodes stop agreeing on one
-grandmaster (and when they agree again).
+Raises hub events (source ``fleet``) on the bus when a node loses or regains lock, changes
+grandmaster, and when the locked nodes stop agreeing on one grandmaster (and when they agree
+again). The view goes into the read model as ``fleet``.
 """
 
 from __future__ import annotations
@@ -19,18 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from edge.wire import Event
-from ptp.status import (
-    GRANDMASTER_CHANGED,
-    SyncState,
-    TimeStatus,
-    format_ns,
-    parse_grandmaster_change,
-    state_of_tag,
-)
+from edge.messages import Event, NodeHealth
+from hub.bus import EventBus
+from hub.node_watch import NodeWatch
+from hub.read_model import ReadModel
+from ptp.status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
 
-Emit = Callable[[int, str, str, str], None]
-"""emit(level, source, tag, message): Recorder.emit."""
+Emit = Callable[..., None]
+"""emit(level, source, tag, message, **fields): `EventBus.emit`."""
 
 SOURCE = "fleet"
 
@@ -48,6 +45,19 @@ class NodeTime:
     as_of_ns: int
     """The edge's time of the reading this comes from."""
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> NodeTime:
+        return cls(
+            node=str(d["node"]),
+            state=SyncState(d["state"]),
+            level=str(d["level"]),
+            source=str(d["source"]),
+            offset_ns=None if d.get("offset_ns") is None else int(d["offset_ns"]),
+            grandmaster_id=str(d.get("grandmaster_id") or ""),
+            port_state=d.get("port_state"),
+            as_of_ns=int(d["as_of_ns"]),
+        )
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "node": self.node,
@@ -64,6 +74,11 @@ class NodeTime:
 @dataclass(frozen=True, slots=True)
 class FleetView:
     nodes: tuple[NodeTime, ...]
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> FleetView:
+        """The inverse of `to_dict` (what the hub's status request carries)."""
+        return cls(tuple(NodeTime.from_dict(n) for n in d.get("nodes", [])))
 
     @property
     def grandmasters(self) -> tuple[str, ...]:
@@ -158,8 +173,10 @@ class FleetTime:
         emit: Emit,
         split_grace_s: float = 2.0,
         monotonic: Callable[[], float] = time.monotonic,
+        on_change: Callable[[FleetView], None] | None = None,
     ) -> None:
         self._emit = emit
+        self._on_change = on_change
         self._nodes: dict[str, NodeTime] = {}
         self._lock = threading.Lock()
         self._split = False
@@ -171,15 +188,11 @@ class FleetTime:
         with self._lock:
             return FleetView(tuple(self._nodes[k] for k in sorted(self._nodes)))
 
-    def update(self, node: str, health: dict[str, Any]) -> None:
+    def update(self, node: str, health: NodeHealth) -> None:
         """A NodeWatch health listener."""
-        clock = health.get("clock")
-        if not isinstance(clock, dict) or clock.get("source") in (None, "none"):
-            return
-        try:
-            status = TimeStatus.from_dict(clock)
-        except (KeyError, TypeError, ValueError):
-            return  # a node that is still starting (no reading yet) or an older version
+        status = health.time_status()
+        if status is None or status.source == "none":
+            return  # no time-sync source, or a node still starting (no reading yet)
         self._apply(
             NodeTime(
                 node=node,
@@ -217,15 +230,17 @@ class FleetTime:
                 note=e.message,
             )
         elif e.tag == GRANDMASTER_CHANGED:
-            change = parse_grandmaster_change(e.message)
-            if change is not None and e.time_ns > known.as_of_ns:
-                self._apply(replace(known, grandmaster_id=change[1], as_of_ns=e.time_ns), "")
+            new = e.get("new")
+            if new is not None and e.time_ns > known.as_of_ns:
+                self._apply(replace(known, grandmaster_id=new, as_of_ns=e.time_ns), "")
 
     def on_alive(self, node: str, alive: bool) -> None:
         """A NodeWatch alive listener: a node that left is no longer part of the view."""
         if not alive:
             with self._lock:
-                self._nodes.pop(node, None)
+                gone = self._nodes.pop(node, None)
+            if gone is not None and self._on_change is not None:
+                self._on_change(self.view())
 
     def _apply(self, new: NodeTime, note: str) -> None:
         events: list[tuple[int, str, str]] = []
@@ -284,5 +299,29 @@ class FleetTime:
                     events.append(
                         (logging.INFO, "grandmasters_agree", f"nodes agree on grandmaster {gm}")
                     )
+        if self._on_change is not None:
+            self._on_change(view)
         for level, tag, message in events:
             self._emit(level, SOURCE, tag, message)
+
+
+class FleetTimeService:
+    """The fleet's time view as a hub service: fed by the node watch and the event bus,
+    published in the read model as ``fleet``."""
+
+    name = "fleet-time"
+
+    def __init__(self, bus: EventBus, model: ReadModel, nodes: NodeWatch) -> None:
+        self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put("fleet", v.to_dict()))
+        nodes.health_listeners.append(self.fleet.update)
+        nodes.alive_listeners.append(self.fleet.on_alive)
+        self._sub = bus.subscribe(self.name, self.fleet.on_event)
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        self._sub.stop()
+
+    def failure(self) -> str | None:
+        return None

@@ -1,0 +1,45 @@
+"""What only the hub uses from the site file: its router endpoints and the recorder.
+
+(Alarms, notifications, rules, the dashboard and security join here as they land.) It lives in
+`edge.config` because the whole site file is validated on every machine.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from edge.schema import Endpoints, Float, Int, Strict
+
+
+class RecorderConfig(Strict):
+    """What the hub records and how files are split (MODAQ 2: fileDuration, loggedTopics)."""
+
+    file_duration_s: Annotated[Float, Field(gt=0)] | None = 60.0
+    max_file_bytes: Annotated[Int, Field(ge=1_000_000)] | None = None
+    flush_interval_s: Annotated[Float, Field(gt=0, le=60)] = 1.0
+    """Close the MCAP chunk in progress and fsync at least this often; acks follow flushes."""
+    recover_on_start: bool = True
+    """At start, turn ``*.mcap.active`` files left by a crash into valid ``*.mcap`` files."""
+    include: Annotated[list[str], Field(min_length=1)] = ["*"]
+    """Patterns on ``node/stream`` (fnmatch); a stream is recorded when any include matches..."""
+    exclude: list[str] = []
+    """...and no exclude does."""
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    chunk_size: Annotated[Int, Field(ge=4096, le=64 * 1024 * 1024)] = 1024 * 1024
+
+    @model_validator(mode="after")
+    def _some_split(self) -> RecorderConfig:
+        if self.file_duration_s is None and self.max_file_bytes is None:
+            raise ValueError("set file_duration_s and/or max_file_bytes, or files never split")
+        return self
+
+
+class HubConfig(Strict):
+    listen: Endpoints = ["tcp/127.0.0.1:7447"]
+    """The embedded router's endpoints; edges connect to these unless a node says otherwise."""
+    data_dir: str | None = None
+    """Recording root. Default: the per-system location of `edge.paths.default_data_dir`
+    (never the current directory); `fleetdaq hub --data` overrides."""
+    recorder: RecorderConfig = RecorderConfig()

@@ -1,0 +1,143 @@
+"""Slow command-response reads of a LabJack T8 (AIN volts, DIO states): `labjack_t8_poll`."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import AfterValidator, Field
+
+from edge.drivers.base import Block, DriverEvent
+from edge.drivers.labjack_ljm import (
+    CORE_TIMER_HZ,
+    CoreTimer,
+    LabJackT8Sim,
+    LjmDevice,
+    T8Connection,
+    load_ljm,
+    t8_range,
+)
+from edge.drivers.pacing import SYSTEM_TIME, PollPacer, TimeSource
+from edge.errors import DriverError
+from edge.schema import Channel, Float, Int, StreamBase
+from edge.wire import SampleStatus
+
+T8_POLL_REGISTER = r"^(AIN[0-7]|FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9])|DAC[01])$"
+
+
+class T8PollChannel(Channel):
+    """A register the T8 is polled for: an AIN (volts), a digital line (0/1) or a DAC readback."""
+
+    source: Annotated[str, Field(pattern=T8_POLL_REGISTER)]
+    """The T8 register read: AIN0-7, FIO0-7, EIO0-7, CIO0-3, DIO0-19 or DAC0-1."""
+    range: Annotated[Float, AfterValidator(t8_range)] = 11.0
+    """AIN#_RANGE for an AIN source."""
+
+
+class LabJackT8PollStream(StreamBase, T8Connection):
+    """Slow command-response reads of a T8 (AIN, DIO states), stamped by its CORE_TIMER."""
+
+    driver: Literal["labjack_t8_poll"]
+    rate_hz: Annotated[Float, Field(gt=0, le=100)]
+    channels: Annotated[list[T8PollChannel], Field(min_length=1, max_length=32)]  # type: ignore[assignment]
+    resolution_index: Annotated[Int, Field(ge=0, le=16)] = 0
+    """AIN#_RESOLUTION_INDEX for every polled AIN."""
+    sim: LabJackT8Sim | None = None
+
+
+class LabJackT8Poll:
+    """Slow command-response reads of a T8 (AIN volts, DIO states): `labjack_t8_poll`.
+
+    Each poll reads every channel and CORE_TIMER in one eReadNames, so the device clock times
+    polls as it times stream scans. Polls are paced on the host; a poll that could not happen
+    on time becomes an invalid sample instead of a burst.
+    """
+
+    def __init__(
+        self,
+        cfg: LabJackT8PollStream,
+        transport: Any | None = None,
+        clock: TimeSource = SYSTEM_TIME,
+    ) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.ljm = transport if transport is not None else load_ljm()
+        self.dev = LjmDevice(self.ljm, cfg.connection, cfg.identifier, clock)
+        self.scans = cfg.batch_scans
+        self.names = [ch.source for ch in cfg.channels] + ["CORE_TIMER"]
+        self.pacer = PollPacer(cfg.rate_hz, clock)
+        self.timer = CoreTimer()
+        self._closing = threading.Event()
+        self._last_host_ns: int | None = None
+        self._events: list[DriverEvent] = []
+        self.opens = 0
+        self.reconnects = 0
+
+    def open(self) -> None:
+        self._closing.clear()
+        self.dev.open()
+        names: list[str] = []
+        values: list[float] = []
+        for ch in self.cfg.channels:
+            if ch.source.startswith("AIN"):
+                names += [f"{ch.source}_RANGE", f"{ch.source}_RESOLUTION_INDEX"]
+                values += [ch.range, float(self.cfg.resolution_index)]
+        try:
+            if names:
+                self.dev.call("eWriteNames", self.dev.handle, len(names), names, values)
+        except DriverError:
+            self.dev.close()
+            raise
+        if self.opens:
+            self.reconnects += 1
+            self._events.append(
+                DriverEvent(logging.INFO, "reconnected", f"{self.dev.where}: polling again")
+            )
+        self.opens += 1
+        self.pacer.start()
+
+    def read(self) -> Block:
+        rows = np.full((self.scans, len(self.cfg.channels)), np.nan)
+        status = np.zeros(rows.shape, dtype=np.uint8)
+        timer: list[int] = []
+        polled: list[int] = []
+        poll_host: list[int] = []
+        i = 0
+        while i < self.scans:
+            missed = self.pacer.next_poll(self._closing)
+            if missed is None or self.dev.handle is None:
+                raise InterruptedError("driver closed")
+            for _ in range(min(missed, self.scans - i)):
+                status[i] = SampleStatus.SKIPPED_SCAN
+                i += 1
+            if i == self.scans:
+                break
+            values = self.dev.call("eReadNames", self.dev.handle, len(self.names), self.names)
+            poll_host.append(self.clock.time_ns())
+            rows[i] = values[:-1]
+            timer.append(int(values[-1]))
+            polled.append(i)
+            i += 1
+        host_ns = self.clock.time_ns()
+        device_ns = None
+        if timer:
+            # Polls are paced by the host: the expected ticks between them come from host time.
+            hosts = np.asarray(poll_host, dtype=np.float64)
+            previous = self._last_host_ns if self._last_host_ns is not None else poll_host[0]
+            expected = np.diff(hosts, prepend=previous) * (CORE_TIMER_HZ / 1e9)
+            ticks = self.timer.unwrap(np.asarray(timer, dtype=np.int64), expected)
+            period_ticks = self.pacer.period_ns * CORE_TIMER_HZ / 1e9
+            last = int(ticks[-1]) + round((self.scans - 1 - polled[-1]) * period_ticks)
+            device_ns = last * 1_000_000_000 // CORE_TIMER_HZ
+            self._last_host_ns = poll_host[-1]
+        events, self._events = tuple(self._events), []
+        return Block(rows, host_ns, status if status.any() else None, device_ns, events)
+
+    def close(self) -> None:
+        self._closing.set()
+        self.dev.close()
+
+    def health(self) -> dict[str, Any]:
+        return {"missed_polls": self.pacer.missed, "reconnects": self.reconnects}

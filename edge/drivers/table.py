@@ -1,0 +1,95 @@
+"""The one driver table: a config's `driver:` name -> its schema, its class, its simulator.
+
+Adding a driver is its module (schema + decoding + class) plus one row here. The schemas are
+imported with this module (the site file is validated against them); a driver module imports
+its vendor library (labjack-ljm, spidev, smbus2) only when a driver is constructed without a
+simulated transport, and the simulators are imported only when a config has a `sim:` block.
+So the hub, laptops and the tests never load a vendor library, and a Pi never loads a sim.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import operator
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any
+
+from pydantic import Field
+
+from edge.drivers.base import Driver
+from edge.drivers.environment_sim import EnvironmentSim, EnvironmentSimStream
+from edge.drivers.hd44780 import LcdDisplay
+from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
+from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
+from edge.drivers.max31855 import Max31855, Max31855Stream
+from edge.drivers.max31856 import Max31856, Max31856Stream
+from edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from edge.drivers.sht3x import Sht3x, Sht3xStream
+from edge.drivers.thermocouple_sim import ThermocoupleSim, ThermocoupleSimStream
+from edge.drivers.wave_sim import WaveSim, WaveSimStream
+from edge.errors import DriverError
+from edge.schema import StreamBase
+
+
+@dataclass(frozen=True, slots=True)
+class DriverSpec:
+    schema: type[StreamBase]
+    """The stream's config schema (its `driver` field is a Literal of the row's name)."""
+    driver: Callable[..., Driver]
+    """``driver(cfg)`` opens the real device; ``driver(cfg, transport=t, clock=c)`` runs the
+    same code on a simulated transport."""
+    sim: str | None = None
+    """``"module:function"``: ``function(cfg, clock)`` builds the simulated transport used when
+    the config has a `sim:` block. None for drivers that are simulations themselves."""
+
+
+DRIVERS: dict[str, DriverSpec] = {
+    "wave_sim": DriverSpec(WaveSimStream, WaveSim),
+    "thermocouple_sim": DriverSpec(ThermocoupleSimStream, ThermocoupleSim),
+    "environment_sim": DriverSpec(EnvironmentSimStream, EnvironmentSim),
+    "labjack_t8": DriverSpec(LabJackT8Stream, LabJackT8, "edge.drivers.sim_ljm:t8_transport"),
+    "labjack_t8_poll": DriverSpec(
+        LabJackT8PollStream, LabJackT8Poll, "edge.drivers.sim_ljm:t8_transport"
+    ),
+    "max31855": DriverSpec(Max31855Stream, Max31855, "edge.drivers.sim_spi:max31855_transport"),
+    "max31856": DriverSpec(Max31856Stream, Max31856, "edge.drivers.sim_spi:max31856_transport"),
+    "sht3x": DriverSpec(Sht3xStream, Sht3x, "edge.drivers.sim_smbus:sht3x_transport"),
+}
+
+DISPLAYS: dict[str, tuple[type[LcdDisplay], str]] = {
+    "hd44780_pcf8574": (LcdDisplay, "edge.drivers.sim_smbus:lcd_transport"),
+}
+"""Display drivers: name -> (schema, simulated transport)."""
+
+if TYPE_CHECKING:
+    StreamConfig = StreamBase
+else:
+    StreamConfig = Annotated[
+        functools.reduce(operator.or_, (spec.schema for spec in DRIVERS.values())),
+        Field(discriminator="driver"),
+    ]
+"""Any stream's config: pydantic picks the schema by its `driver:` value."""
+
+
+def load_sim(target: str) -> Callable[[Any, TimeSource], Any]:
+    """Import a simulator's transport factory (``"module:function"``) now."""
+    module_name, _, name = target.partition(":")
+    factory: Callable[[Any, TimeSource], Any] = getattr(importlib.import_module(module_name), name)
+    return factory
+
+
+def create_driver(cfg: StreamBase, clock: TimeSource = SYSTEM_TIME) -> Driver:
+    """The driver for a stream's config, on its simulated transport when the config has `sim:`.
+
+    Raises:
+        DriverUnavailable: the device's vendor library is not installed.
+        DriverError: no driver of that name.
+    """
+    spec = DRIVERS.get(cfg.driver)
+    if spec is None:
+        raise DriverError(f"no driver named {cfg.driver!r}")
+    if spec.sim is not None and getattr(cfg, "sim", None) is not None:
+        return spec.driver(cfg, transport=load_sim(spec.sim)(cfg, clock), clock=clock)
+    return spec.driver(cfg)

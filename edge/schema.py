@@ -1,0 +1,174 @@
+"""The building blocks of every site-file schema: strict models, names, endpoints, channels,
+the fields every stream has, and simulated faults."""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from typing import Annotated, Any
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+
+NAME = r"^[a-z][a-z0-9_-]{0,62}$"
+"""Node, stream and site names: they become Zenoh key chunks and MCAP topic names."""
+CHANNEL_NAME = r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$"
+
+RESERVED_STREAM_NAMES = frozenset({"health", "events", "alarms", "commands", "outputs"})
+"""Stream names that would collide with a node's own recorded topics (``/<node>/health``...)."""
+
+
+def _no_boolean(value: Any) -> Any:
+    # Lax pydantic takes True as 1: `rate_hz: yes` would silently mean 1 Hz.
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got the YAML boolean {str(value).lower()}")
+    return value
+
+
+Float = Annotated[float, BeforeValidator(_no_boolean)]
+"""A float that refuses YAML booleans (true/false/yes/no/on/off)."""
+Int = Annotated[int, BeforeValidator(_no_boolean)]
+"""An int that refuses YAML booleans."""
+
+
+class Strict(BaseModel):
+    """Every schema: unknown keys are errors, objects are immutable, NaN/inf refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
+
+
+def _not_reserved_node(name: str) -> str:
+    if name == "hub":
+        raise ValueError("'hub' is reserved for the hub's own keys; rename the node")
+    return name
+
+
+def _not_reserved_stream(name: str) -> str:
+    if name in RESERVED_STREAM_NAMES:
+        raise ValueError(
+            f"stream name {name!r} is reserved (the node's own {name} are recorded under it)"
+        )
+    return name
+
+
+NodeName = Annotated[str, Field(pattern=NAME), AfterValidator(_not_reserved_node)]
+StreamName = Annotated[str, Field(pattern=NAME), AfterValidator(_not_reserved_stream)]
+Name = Annotated[str, Field(pattern=NAME)]
+
+
+# --- Zenoh endpoints ---------------------------------------------------------------------------
+
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+"""Zenoh link protocols a site may name (``unixsock-stream`` takes a path instead)."""
+_HOST = re.compile(
+    r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
+)
+
+
+def check_endpoint(value: str) -> str:
+    """A Zenoh endpoint ``PROTO/HOST:PORT`` (IPv6 as ``[addr]``), or ``unixsock-stream/PATH``.
+
+    Raises ValueError saying what is wrong, so a typo is a config error, not a failure at run
+    time on a buoy.
+    """
+    text = value.split("#", 1)[0].split("?", 1)[0]  # Zenoh's metadata and config suffixes
+    proto, sep, address = text.partition("/")
+    if not sep:
+        raise ValueError(f"endpoint {value!r}: expected PROTOCOL/HOST:PORT, e.g. tcp/10.0.0.2:7447")
+    if proto == "unixsock-stream":
+        if not address:
+            raise ValueError(f"endpoint {value!r}: no socket path")
+        return value
+    if proto not in ENDPOINT_PROTOCOLS:
+        raise ValueError(
+            f"endpoint {value!r}: unknown protocol {proto!r} "
+            f"(one of {', '.join((*ENDPOINT_PROTOCOLS, 'unixsock-stream'))})"
+        )
+    host, colon, port = address.rpartition(":")
+    if not colon or not host:
+        raise ValueError(f"endpoint {value!r}: expected {proto}/HOST:PORT")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ValueError(f"endpoint {value!r}: port {port!r} is not a number from 1 to 65535")
+    if host.startswith("["):
+        if not host.endswith("]"):
+            raise ValueError(f"endpoint {value!r}: unclosed '[' around an IPv6 address")
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            raise ValueError(f"endpoint {value!r}: {host[1:-1]!r} is not an IPv6 address") from None
+    elif not _HOST.match(host):
+        raise ValueError(f"endpoint {value!r}: {host!r} is not a host name or address")
+    return value
+
+
+Endpoint = Annotated[str, AfterValidator(check_endpoint)]
+Endpoints = Annotated[list[Endpoint], Field(min_length=1)]
+
+
+# --- Channels and streams ---------------------------------------------------------------------
+
+
+class Channel(Strict):
+    """One channel of a stream: engineering value = raw * scale + offset."""
+
+    name: Annotated[str, Field(pattern=CHANNEL_NAME)]
+    unit: str = ""
+    scale: Float = 1.0
+    offset: Float = 0.0
+
+
+class StreamBase(Strict):
+    """What every stream has, whatever its driver. Each driver's schema extends this."""
+
+    driver: str
+    """The driver's name in `edge.drivers.table` (each schema narrows it to its own)."""
+    rate_hz: Annotated[Float, Field(gt=0, le=1_000_000)]
+    """Scan rate: every channel is sampled once per scan."""
+    scans_per_batch: Annotated[Int, Field(ge=1, le=1_000_000)] | None = None
+    """Scans in one published batch; default ≈ 100 ms of data (at least 1 scan)."""
+    channels: Annotated[list[Channel], Field(min_length=1, max_length=64)]
+
+    @field_validator("channels")
+    @classmethod
+    def _unique_channel_names(cls, channels: list[Channel]) -> list[Channel]:
+        seen: dict[str, int] = {}
+        for i, ch in enumerate(channels):
+            if ch.name in seen:
+                raise ValueError(
+                    f"duplicate channel name {ch.name!r} (channels[{seen[ch.name]}] and [{i}])"
+                )
+            seen[ch.name] = i
+        return channels
+
+    @property
+    def batch_scans(self) -> int:
+        return self.scans_per_batch or max(1, round(self.rate_hz * 0.1))
+
+
+class SimFault(Strict):
+    """A fault a simulation injects: active from `at_s` (seconds after the device opened) for
+    `for_s` seconds (null: for good), repeating every `every_s`; while active, each transaction
+    fails with `probability`."""
+
+    at_s: Annotated[Float, Field(ge=0)] = 0.0
+    for_s: Annotated[Float, Field(gt=0)] | None = None
+    every_s: Annotated[Float, Field(gt=0)] | None = None
+    probability: Annotated[Float, Field(gt=0, le=1)] = 1.0
+
+    @model_validator(mode="after")
+    def _fits_its_period(self) -> SimFault:
+        if self.every_s is not None and (self.for_s is None or self.for_s >= self.every_s):
+            raise ValueError("a repeating fault needs for_s shorter than every_s")
+        return self
+
+
+def as_identifier(value: Any) -> Any:
+    """A serial number written as a bare number in YAML is still an identifier (a string)."""
+    return str(value) if isinstance(value, int) and not isinstance(value, bool) else value

@@ -1,0 +1,62 @@
+"""``fleetdaq demo``: the hub in this process and every node of a site as its own process."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from fleetdaq.cli.common import load_site, stop_on_signals
+
+
+@click.command()
+@click.option(
+    "--config",
+    "config",
+    type=click.Path(),
+    help="Site file (default: the embedded demo site).",
+)
+@click.option(
+    "--data",
+    "data_dir",
+    type=click.Path(file_okay=False),
+    help="Recording root (default: ~/.local/state/fleetdaq/demo, /var/lib/fleetdaq/demo as root).",
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0, min_open=True),
+    help="Run this many seconds, then stop (default: until Ctrl-C).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON summary at exit.")
+@click.option("--listen", help="Hub endpoint, overriding the site file (e.g. tcp/127.0.0.1:7450).")
+def demo(
+    config: str | None,
+    data_dir: str | None,
+    duration: float | None,
+    as_json: bool,
+    listen: str | None,
+) -> None:
+    """Hub + every node of the site as separate processes, with a live table."""
+    from edge.config.site import demo_config_path
+    from edge.paths import default_demo_dir
+
+    path = Path(config) if config else demo_config_path()
+    site = load_site(path)
+    if listen:
+        from edge.schema import check_endpoint
+        from fleetdaq.cli.common import fail
+
+        try:
+            check_endpoint(listen)
+        except ValueError as err:
+            fail(f"--listen: {err}")
+    from hub.demo import run_demo
+
+    stop = stop_on_signals()
+    root = Path(data_dir) if data_dir else default_demo_dir()
+    code, summary = run_demo(site, path, root, duration, stop, listen)
+    if as_json:
+        click.echo(json.dumps(summary, indent=2))
+    sys.exit(code)

@@ -1,0 +1,49 @@
+"""``fleetdaq edge``: run one node's agent. Loads only the edge package (a Pi needs nothing of
+the hub's)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from fleetdaq.cli.common import fail, load_site, setup_logging, stop_on_signals
+
+
+@click.command()
+@click.option("--config", "config", required=True, type=click.Path())
+@click.option("--node", required=True, help="Which node of the site file this machine is.")
+@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@click.option(
+    "--spool",
+    "spool_dir",
+    type=click.Path(file_okay=False),
+    help="Spool root, overriding the site file (default: /var/lib/fleetdaq/spool as root, "
+    "~/.local/state/fleetdaq/spool otherwise).",
+)
+@click.option("-v", "--verbose", is_flag=True)
+def edge(
+    config: str, node: str, connect: tuple[str, ...], spool_dir: str | None, verbose: bool
+) -> None:
+    """Run the edge agent for one node until SIGTERM or Ctrl-C."""
+    stop = stop_on_signals()  # first: a signal during start-up must still stop cleanly
+    site = load_site(config)
+    if node not in site.nodes:
+        fail(f"{config}: nodes: no node named {node!r} (have: {', '.join(site.nodes)})")
+    if connect:
+        from edge.schema import check_endpoint
+
+        for endpoint in connect:
+            try:
+                check_endpoint(endpoint)
+            except ValueError as err:
+                fail(f"--connect: {err}")
+    setup_logging(verbose)
+    from edge.agent import EdgeAgent
+    from edge.errors import DriverError
+
+    try:
+        with EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None):
+            stop.wait()
+    except DriverError as err:
+        fail(f"{config}: nodes.{node}: {err}", 1)

@@ -1,0 +1,71 @@
+"""events.log: every event, one line each, in a size-limited text file (like MODAQ 2's supervisor
+log: rotated at `max_bytes`, `backups` old files kept), also to Python logging, and the latest
+ones and the counts per level in the read model. A subscriber of the event bus."""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import logging.handlers
+from collections import deque
+from pathlib import Path
+
+from edge.messages import Event
+from hub.bus import EventBus
+from hub.read_model import ReadModel
+
+log = logging.getLogger("fleetdaq.events")
+
+
+def format_event(e: Event) -> str:
+    when = dt.datetime.fromtimestamp(e.time_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds")
+    tag = f" [{e.tag}]" if e.tag else ""
+    return f"{when} {e.level_name.upper():8} {e.node}/{e.source}{tag}: {e.message}"
+
+
+class EventLog:
+    name = "event-log"
+
+    def __init__(
+        self,
+        path: Path,
+        bus: EventBus,
+        model: ReadModel,
+        max_bytes: int = 10_000_000,
+        backups: int = 5,
+        tail: int = 200,
+    ) -> None:
+        self.path = path
+        self.max_bytes = max_bytes
+        self.backups = backups
+        self.model = model
+        self.recent: deque[Event] = deque(maxlen=tail)
+        self.counts: dict[str, int] = {}
+        self._file: logging.handlers.RotatingFileHandler | None = None
+        self._sub = bus.subscribe(self.name, self._on_event)
+
+    def start(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = logging.handlers.RotatingFileHandler(
+            self.path, maxBytes=self.max_bytes, backupCount=self.backups, encoding="utf-8"
+        )
+        self._file.setFormatter(logging.Formatter("%(message)s"))
+
+    def _on_event(self, e: Event) -> None:
+        line = format_event(e)
+        if self._file is not None:
+            self._file.emit(logging.makeLogRecord({"msg": line, "levelno": e.level}))
+        log.log(e.level, "%s", line)
+        self.recent.append(e)
+        self.counts[e.level_name] = self.counts.get(e.level_name, 0) + 1
+        self.model.put("recent_events", tuple(self.recent))
+        self.model.put("event_counts", dict(self.counts))
+
+    def stop(self) -> None:
+        self._sub.stop()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def failure(self) -> str | None:
+        return None if self._sub.alive or self._file is None else "its bus thread died"

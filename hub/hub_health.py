@@ -1,0 +1,74 @@
+"""The hub's own health, in the same typed shape as a node's (`NodeHealth`, node ``hub``):
+its machine (CPU, memory, the recording disk's free space, temperature), in the read model as
+``hub_health`` and recorded on ``/hub/health`` about once a second."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+from edge import __version__
+from edge.cdr import encode
+from edge.host_metrics import HostMetricsReader
+from edge.keys import HUB
+from edge.messages import NODE_HEALTH_TYPE, NodeHealth, TimeSyncStatus
+from hub.read_model import ReadModel
+from hub.recorder import Recorder
+from hub.session import health_topic
+
+log = logging.getLogger("fleetdaq.hub")
+
+
+class HubHealth:
+    name = "hub-health"
+
+    def __init__(
+        self, data_dir: Path, model: ReadModel, recorder: Recorder, period_s: float = 1.0
+    ) -> None:
+        self.model = model
+        self.recorder = recorder
+        self.period_s = period_s
+        self.host = HostMetricsReader({"data": data_dir})
+        self.started_ns = time.time_ns()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="hub-health", daemon=True)
+        self._died: str | None = None
+
+    def read(self) -> NodeHealth:
+        now = time.time_ns()
+        return NodeHealth(
+            time_ns=now,
+            node=HUB,
+            version=__version__,
+            uptime_s=(now - self.started_ns) / 1e9,
+            host=self.host.read(),
+            streams=(),
+            clock=TimeSyncStatus.unknown(),
+        )
+
+    def start(self) -> None:
+        self.model.put("hub_health", self.read())
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(self.period_s):
+                health = self.read()
+                self.model.put("hub_health", health)
+                self.recorder.record(
+                    health_topic(HUB), encode(health), health.time_ns, health.time_ns,
+                    NODE_HEALTH_TYPE,
+                )  # fmt: skip
+        except Exception as err:
+            self._died = f"the hub-health thread died: {err!r}"
+            log.critical("%s", self._died, exc_info=True)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5.0)
+
+    def failure(self) -> str | None:
+        return self._died

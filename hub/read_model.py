@@ -1,0 +1,133 @@
+"""The hub's read model: immutable snapshots of nodes, streams, the recorder and the fleet's
+time, which the services publish and everyone else reads (the demo's table, the status
+request, and later the dashboard and /metrics) without touching a lock or an internal.
+
+Each service replaces its own part whole (one reference swap); `snapshot()` hands out the
+current parts together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+from edge.messages import Event, NodeHealth
+
+
+@dataclass(frozen=True, slots=True)
+class StreamView:
+    node: str
+    stream: str
+    recorded: bool
+    rate_hz: float
+    """Configured scans per second."""
+    scan_rate: float
+    """Measured over the last batches."""
+    batches: int = 0
+    scans: int = 0
+    samples: int = 0
+    gaps: int = 0
+    lost: int = 0
+    missing: int = 0
+    duplicates: int = 0
+    late: int = 0
+    deferred: int = 0
+    malformed: int = 0
+    overflow: int = 0
+    implausible_times: int = 0
+    acquisition_gaps: int = 0
+    first_sequence: int | None = None
+    last_sequence: int | None = None
+    acked: int | None = None
+    last_receive_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class NodeView:
+    node: str
+    alive: bool
+    health: NodeHealth | None = None
+    health_received_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RecorderView:
+    state: str = "starting"
+    """"recording", "stopped", "disk_error" or "failed" (its writer died)."""
+    session: str = ""
+    session_dir: str = ""
+    current_file: str = ""
+    current_file_bytes: int = 0
+    files: tuple[str, ...] = ()
+    abandoned_files: tuple[str, ...] = ()
+    write_errors: int = 0
+    writer_errors: int = 0
+    malformed: int = 0
+    overflow: int = 0
+    queued_bytes: int = 0
+    events_not_recorded: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class HubView:
+    site: str
+    time_ns: int
+    nodes: tuple[NodeView, ...] = ()
+    streams: tuple[StreamView, ...] = ()
+    recorder: RecorderView = RecorderView()
+    hub_health: NodeHealth | None = None
+    fleet: dict[str, Any] = field(default_factory=dict)
+    """The fleet's time (`hub.fleet_time.FleetView.to_dict`)."""
+    recent_events: tuple[Event, ...] = ()
+    event_counts: dict[str, int] = field(default_factory=dict)
+    refused_keys: tuple[tuple[str, int], ...] = ()
+    """Keys the site file does not define that traffic arrived on, with counts."""
+    refused_total: int = 0
+    malformed: tuple[tuple[str, int], ...] = ()
+    """Health and event payloads refused per node (batches: per stream, in `streams`)."""
+    bus: tuple[dict[str, Any], ...] = ()
+    failures: tuple[tuple[str, str], ...] = ()
+
+    def node(self, name: str) -> NodeView | None:
+        return next((n for n in self.nodes if n.node == name), None)
+
+    def stream(self, node: str, stream: str) -> StreamView | None:
+        return next((s for s in self.streams if (s.node, s.stream) == (node, stream)), None)
+
+
+class ReadModel:
+    def __init__(self, site: str) -> None:
+        self.site = site
+        self._parts: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def put(self, part: str, value: Any) -> None:
+        """Replace one part (``nodes``, ``streams``, ``recorder``, ``fleet``, ...) whole."""
+        with self._lock:
+            self._parts[part] = value
+
+    def snapshot(self, time_ns: int = 0) -> HubView:
+        with self._lock:
+            parts = dict(self._parts)
+        return HubView(site=self.site, time_ns=time_ns, **parts)
+
+
+def to_jsonable(value: Any) -> Any:
+    """Dataclasses, enums, tuples and non-finite floats into JSON-ready values."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, bytes):
+        return value.hex()
+    return value

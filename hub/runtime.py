@@ -1,0 +1,169 @@
+"""The running hub: its services, composed in this one place, started in order, stopped in reverse.
+
+Adding a service is one line in `HubRuntime.__init__`'s list. Services share:
+
+- the router (`hub.router`): the Zenoh session;
+- the event bus (`hub.bus`): every event, from the nodes and the hub, to every subscriber on
+  its own thread (the recorder, events.log, the fleet's time view, ...);
+- the read model (`hub.read_model`): snapshots anyone may read (`snapshot()`): the demo's
+  table, the status request, the dashboard.
+
+The order matters: the router first (everything talks through it), the bus and events.log next
+(so every later service's events are kept), the recorder before the node watch (health goes
+into the recording), the heartbeat and the status request last (edges and operators see a hub
+only once it records). Stopping runs the other way, so the recorder drains what reached it
+after the node watch has stopped listening.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from edge.config.site import SiteConfig
+from edge.keys import SiteKeys
+from edge.paths import default_data_dir
+from hub.bus import EventBus
+from hub.event_log import EventLog
+from hub.fleet_time import FleetTimeService
+from hub.heartbeat import Heartbeat
+from hub.hub_health import HubHealth
+from hub.node_watch import NodeWatch
+from hub.read_model import HubView, ReadModel
+from hub.recorder import Recorder
+from hub.refused import RefusedKeys
+from hub.router import Router
+from hub.services import ServiceStack
+from hub.status import StatusService
+
+log = logging.getLogger("fleetdaq.hub")
+
+
+class _BusService:
+    """The event bus's lifecycle in the stack (its subscribers' threads)."""
+
+    name = "event-bus"
+
+    def __init__(self, bus: EventBus) -> None:
+        self.bus = bus
+
+    def start(self) -> None:
+        self.bus.start()
+
+    def stop(self) -> None:
+        self.bus.stop()
+
+    def failure(self) -> str | None:
+        dead = self.bus.dead()
+        return f"event subscriber thread(s) died: {', '.join(dead)}" if dead else None
+
+
+class HubRuntime:
+    """A context manager: the hub's services running between enter and exit."""
+
+    def __init__(
+        self, site: SiteConfig, data_dir: Path | None = None, listen: list[str] | None = None
+    ) -> None:
+        self.site = site
+        self.listen = listen or list(site.hub.listen)
+        configured = site.hub.data_dir
+        self.data_dir = data_dir or (Path(configured) if configured else default_data_dir())
+        self.keys = SiteKeys(site.site)
+        self.model = ReadModel(site.site)
+        self.bus = EventBus()
+        self.refused = RefusedKeys(self.bus, self.model)
+
+        self.router = Router(self.listen)
+        self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
+        self.recorder = Recorder(
+            self.router, site, self.data_dir, self.bus, self.model, self.refused
+        )
+        self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
+        self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
+        self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
+        self.status = StatusService(self.router, self.keys, self.snapshot)
+        self.services = ServiceStack(
+            [
+                self.router,
+                _BusService(self.bus),
+                self.event_log,
+                self.recorder,
+                self.nodes,
+                self.fleet,
+                self.hub_health,
+                self.heartbeat,
+                self.status,
+            ]
+        )
+        self.started = False
+
+    def _session_name(self) -> str:
+        s = self.recorder.session
+        return s.name if s is not None else ""
+
+    def __enter__(self) -> HubRuntime:
+        self.start()
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start every service; on failure (or Ctrl-C) part-way, stop what had started."""
+        self.services.start()
+        self.started = True
+        session = self.recorder.session
+        assert session is not None
+        self.bus.emit(
+            logging.INFO,
+            "hub",
+            "started",
+            f"hub started: site {self.site.site}, listening on {', '.join(self.listen)}, "
+            f"session {session.name}",
+            session=session.name,
+        )
+        log.info(
+            "hub for site %r listening on %s, recording into %s",
+            self.site.site,
+            self.listen,
+            session.dir,
+        )
+
+    def close(self) -> None:
+        """Stop every service, newest first. Idempotent."""
+        self.services.stop()
+        self.refused.publish()
+
+    def failures(self) -> list[tuple[str, str]]:
+        """Services whose worker died: the hub must say so and stop, not run on silently."""
+        return self.services.failures()
+
+    def snapshot(self) -> HubView:
+        view = self.model.snapshot(time.time_ns())
+        bus = tuple(
+            {
+                "name": s.name,
+                "delivered": s.delivered,
+                "dropped": s.dropped,
+                "errors": s.errors,
+                "queued": s.queued,
+            }
+            for s in self.bus.stats()
+        )
+        failures = tuple(self.failures()) if self.started else ()
+        return dataclasses.replace(view, bus=bus, failures=failures)
+
+    def summary(self) -> dict[str, Any]:
+        """The final accounting (per stream, files, refused traffic, events by level)."""
+        out = self.recorder.summary()
+        out["events"] = dict(self.event_log.counts)
+        out["bus"] = list(self.snapshot().bus)
+        out["failures"] = [f"{name}: {why}" for name, why in self.failures()]
+        return out

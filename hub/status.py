@@ -1,0 +1,63 @@
+"""``fleetdaq/<site>/hub/status``: the hub's read model as JSON, to anyone who asks (a Zenoh
+query with a reply). `fleetdaq ptp fleet`, the tests and operators' tools read the hub through
+it instead of re-building what the hub already knows."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from edge.keys import SiteKeys
+from hub.read_model import HubView, to_jsonable
+from hub.router import Router
+
+log = logging.getLogger("fleetdaq.hub")
+
+
+def view_json(view: HubView) -> bytes:
+    return json.dumps(to_jsonable(view), separators=(",", ":")).encode()
+
+
+class StatusService:
+    name = "status"
+
+    def __init__(self, router: Router, keys: SiteKeys, snapshot: Callable[[], HubView]) -> None:
+        self.router = router
+        self.key = keys.hub("status")
+        self.snapshot = snapshot
+        self._queryable: Any = None
+        self.answered = 0
+
+    def start(self) -> None:
+        self._queryable = self.router.session.declare_queryable(self.key, self._on_query)
+
+    def _on_query(self, query: Any) -> None:
+        try:
+            query.reply(self.key, view_json(self.snapshot()))
+            self.answered += 1
+        except Exception:  # a query must never take the service down
+            log.exception("answering a status query failed")
+
+    def stop(self) -> None:
+        if self._queryable is not None:
+            self._queryable.undeclare()
+            self._queryable = None
+
+    def failure(self) -> str | None:
+        return None
+
+
+def query_status(session: Any, keys: SiteKeys, timeout_s: float = 5.0) -> dict[str, Any] | None:
+    """Ask the hub for its status; None when no hub answers within `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        for reply in session.get(keys.hub("status"), timeout=max(0.5, deadline - time.monotonic())):
+            if reply.ok is not None:
+                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                return out
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.2)
