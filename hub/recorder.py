@@ -380,6 +380,10 @@ class Recorder:
             h = read_header(payload)
             if (h.node, h.stream) != (node, stream):
                 raise WireError(f"payload says {h.node}/{h.stream}, key says {node}/{stream}")
+            if floor is not None and floor > h.sequence:
+                # An edge's floor is the lowest sequence its spool holds: never above a batch
+                # it sends. Believing it would write off every batch below it as lost.
+                raise WireError(f"floor {floor} above the batch's own sequence {h.sequence}")
         except WireError as err:
             self._malformed(st, err)
             return

@@ -68,6 +68,12 @@ BAD: dict[str, tuple[str, str]] = {
     "bad_empty.yaml": ("(top level)", "the file is empty"),
     "bad_not_yaml_tab.yaml": (":5", "not valid YAML"),
     "bad_not_yaml_unclosed.yaml": (":7", "not valid YAML"),
+    # Zenoh endpoints are checked at load, not found wrong on a buoy at run time.
+    "bad_endpoint_no_port.yaml": ("nodes.wec.connect[0]", "expected tcp/HOST:PORT"),
+    "bad_endpoint_bad_port.yaml": ("nodes.wec.connect[0]", "from 1 to 65535"),
+    "bad_endpoint_unknown_protocol.yaml": ("nodes.wec.connect[0]", "unknown protocol 'tpc'"),
+    "bad_listen_endpoint.yaml": ("hub.listen[0]", "unclosed '['"),
+    "bad_stream_named_health.yaml": ("nodes.wec.streams.health", "is reserved"),
 }
 
 GOOD = sorted(p.name for p in (REPO / DATA).glob("good_*.yaml"))

@@ -44,6 +44,8 @@ def edge(
 
     try:
         with EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None):
-            stop.wait()
+            # Timed waits: a signal that lands on another thread is still seen within a second.
+            while not stop.wait(1.0):
+                pass
     except DriverError as err:
         fail(f"{config}: nodes.{node}: {err}", 1)

@@ -1,0 +1,205 @@
+"""The hub as services: started in order, stopped in reverse, rolled back on a failed start; a
+slow event subscriber never delays recording or acks; a dead worker is reported, not hidden."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from edge.cdr import encode
+from edge.config.load import parse_config
+from edge.keys import SiteKeys
+from edge.messages import Event, make_event
+from edge.wire import BatchEncoder, decode_u64, encode_u64
+from edge.zenoh_session import client_config
+from hub.errors import RouterError
+from hub.runtime import HubRuntime
+from hub.services import ServiceStack
+from ptp.quality import UNSYNCED
+from tests.procs import free_port
+
+SITE = """\
+site: svc
+hub:
+  listen: [tcp/127.0.0.1:{port}]
+  recorder: {{flush_interval_s: 0.2}}
+nodes:
+  wec:
+    streams:
+      t8: {{driver: wave_sim, rate_hz: 1000, channels: [{{name: a}}, {{name: b}}]}}
+"""
+
+
+def wait_until(cond: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.02)
+
+
+class Part:
+    """A collaborator of the stack under test: records what happens to it."""
+
+    def __init__(self, name: str, log: list[str], fail_start: bool = False) -> None:
+        self.name = name
+        self.log = log
+        self.fail_start = fail_start
+
+    def start(self) -> None:
+        if self.fail_start:
+            raise RuntimeError(f"{self.name} cannot start")
+        self.log.append(f"start {self.name}")
+
+    def stop(self) -> None:
+        self.log.append(f"stop {self.name}")
+
+    def failure(self) -> str | None:
+        return None
+
+
+def test_services_start_in_order_and_stop_in_reverse():
+    log: list[str] = []
+    stack = ServiceStack([Part("a", log), Part("b", log), Part("c", log)])
+    stack.start()
+    stack.stop()
+    stack.stop()  # idempotent
+    assert log == ["start a", "start b", "start c", "stop c", "stop b", "stop a"]
+
+
+def test_a_failed_start_stops_what_had_started_and_raises():
+    log: list[str] = []
+    stack = ServiceStack([Part("a", log), Part("b", log), Part("c", log, fail_start=True)])
+    with pytest.raises(RuntimeError, match="c cannot start"):
+        stack.start()
+    assert log == ["start a", "start b", "stop b", "stop a"]
+
+
+def test_a_hub_whose_port_is_taken_starts_nothing_and_leaves_nothing_running(tmp_path: Path):
+    port = free_port()
+    site = parse_config(SITE.format(port=port), "<test>")
+    threads = set(threading.enumerate())
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", port))
+        s.listen()
+        runtime = HubRuntime(site, tmp_path / "data")
+        with pytest.raises(RouterError, match="cannot start the Zenoh router"):
+            runtime.start()
+    assert not (tmp_path / "data").exists(), "nothing after the router was started"
+    new = [t.name for t in set(threading.enumerate()) - threads if t.is_alive()]
+    assert not [n for n in new if n.startswith(("bus-", "recorder", "heartbeat", "hub-health"))]
+
+
+@pytest.fixture
+def hub(tmp_path: Path) -> Iterator[tuple[HubRuntime, int]]:
+    port = free_port()
+    site = parse_config(SITE.format(port=port), "<test>")
+    runtime = HubRuntime(site, tmp_path / "data")
+    yield runtime, port
+    runtime.close()
+
+
+def _batches() -> Iterator[bytes]:
+    enc = BatchEncoder("wec", "t8", ("a", "b"), ("V", "V"))
+    data = np.zeros((100, 2))
+    seq = 0
+    while True:
+        yield bytes(enc.encode(seq, time.time_ns(), 1e6, data, UNSYNCED))
+        seq += 1
+
+
+def test_a_subscriber_that_blocks_for_10_s_delays_neither_recording_nor_acks(
+    hub: tuple[HubRuntime, int],
+):
+    runtime, port = hub
+    released = threading.Event()
+    blocked = threading.Event()
+
+    def slow(e: Event) -> None:  # an e-mail notifier waiting on a dead server, say
+        blocked.set()
+        released.wait(10.0)
+
+    runtime.bus.subscribe("slow", slow, maxsize=5)
+    runtime.start()
+    keys = SiteKeys("svc")
+    acks: list[int] = []
+    session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
+    sub = session.declare_subscriber(
+        keys.ack("wec", "t8"), lambda s: acks.append(decode_u64(s.payload.to_bytes()) or -1)
+    )
+    data_pub = session.declare_publisher(keys.data("wec", "t8"))
+    events_pub = session.declare_publisher(keys.events("wec"))
+    try:
+        wait_until(lambda: data_pub.matching_status.matching, 10, "the hub's subscription")
+        events_pub.put(encode(make_event(time.time_ns(), "wec", logging.INFO, "t", "go", "go")))
+        assert blocked.wait(10.0), "the slow subscriber got the first event"
+        t_blocked = time.monotonic()
+        batches = _batches()
+        sent = -1
+        # While it blocks: 3 s of batches (and 50 more events, which overflow its queue of 5).
+        while time.monotonic() - t_blocked < 3.0:
+            data_pub.put(next(batches), attachment=encode_u64(0))
+            sent += 1
+            if sent < 50:
+                events_pub.put(encode(make_event(time.time_ns(), "wec", 20, "t", "e", str(sent))))
+            time.sleep(0.02)
+        wait_until(lambda: bool(acks) and acks[-1] == sent, 5.0, f"the ack of sequence {sent}")
+        assert not released.is_set()
+        assert time.monotonic() - t_blocked < 10.0, "acked while the subscriber still blocked"
+        view = runtime.snapshot()
+        slow_stats = next(b for b in view.bus if b["name"] == "slow")
+        assert slow_stats["dropped"] > 0, "its overflow is counted"
+        log_stats = next(b for b in view.bus if b["name"] == "event-log")
+        assert log_stats["dropped"] == 0, "the other subscribers got every event"
+        assert any(e.tag == "bus_overflow" for e in view.recent_events), "and it is raised"
+        stream = view.stream("wec", "t8")
+        assert stream is not None
+        assert stream.batches == sent + 1
+    finally:
+        released.set()
+        sub.undeclare()
+        data_pub.undeclare()
+        events_pub.undeclare()
+        session.close()
+
+
+class Boom(BaseException):
+    """What no handler can catch: stands in for a bug that kills a worker thread."""
+
+
+class _Deadly:
+    def __len__(self) -> int:
+        raise Boom("the writer met something nobody foresaw")
+
+
+def test_a_dead_recorder_thread_is_reported_loudly_not_hidden(hub: tuple[HubRuntime, int]):
+    runtime, _ = hub
+    runtime.start()
+    assert runtime.failures() == []
+    stream = next(iter(runtime.recorder.routes.values()))
+    # Handed straight to the writer thread: a payload whose length cannot even be taken.
+    runtime.recorder._queue.put((0, stream, _Deadly(), time.time_ns(), None))
+    wait_until(lambda: bool(runtime.failures()), 10, "the failure to be reported")
+    ((name, why),) = runtime.failures()
+    assert name == "recorder"
+    assert "writer thread died" in why
+    view = runtime.snapshot()
+    assert view.recorder.state == "failed"
+    assert view.failures == (("recorder", why),)
+    wait_until(
+        lambda: any(e.tag == "writer_died" for e in runtime.snapshot().recent_events),
+        10,
+        "the writer_died event",
+    )
+    runtime.close()
+    text = (runtime.data_dir / "events.log").read_text()
+    assert "CRITICAL" in text
+    assert "writer_died" in text

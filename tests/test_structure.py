@@ -1,0 +1,92 @@
+"""The code's shape, checked: no import cycle between any two modules (import-linter's
+contracts in pyproject.toml check the layers and siblings), and no module much over 500 lines
+without a stated reason."""
+
+from __future__ import annotations
+
+import grimp
+
+from tests.procs import REPO
+
+PACKAGES = ("fleetdaq", "hub", "edge", "ptp")
+LONG_MODULES_WITH_A_REASON = {
+    # One simulated device behind a vendor API's whole surface (errors, constants, stream mode).
+    "edge/drivers/sim_ljm.py": "the simulated T8: every LJM call the driver makes",
+    # One writer thread's whole life: checks, accounting hooks, flush/ack, write errors.
+    "hub/recorder.py": "the recorder's writer thread and its failure handling",
+}
+
+
+def _cycles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    out: list[list[str]] = []
+    counter = 0
+    for root in sorted(graph.modules):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root))))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in graph.modules:
+                    continue
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append(
+                        (child, iter(sorted(graph.find_modules_directly_imported_by(child))))
+                    )
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[node])
+            if low[node] == index[node]:
+                scc = []
+                while True:
+                    m = stack.pop()
+                    on_stack.discard(m)
+                    scc.append(m)
+                    if m == node:
+                        break
+                if len(scc) > 1:
+                    out.append(sorted(scc))
+    return out
+
+
+def test_no_two_modules_import_each_other_even_indirectly():
+    graph = grimp.build_graph(*PACKAGES)
+    assert _cycles(graph) == []
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    graph = grimp.ImportGraph()
+    for m in ("a", "a.x", "a.y", "a.z"):
+        graph.add_module(m)
+    graph.add_import(importer="a.x", imported="a.y")
+    graph.add_import(importer="a.y", imported="a.z")
+    graph.add_import(importer="a.z", imported="a.x")
+    assert _cycles(graph) == [["a.x", "a.y", "a.z"]]
+
+
+def test_no_module_is_much_over_500_lines_without_a_reason():
+    long = {
+        str(p.relative_to(REPO))
+        for pkg in PACKAGES
+        for p in (REPO / pkg).rglob("*.py")
+        if len(p.read_text().splitlines()) > 550
+    }
+    assert long <= set(LONG_MODULES_WITH_A_REASON), sorted(long - set(LONG_MODULES_WITH_A_REASON))
