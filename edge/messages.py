@@ -16,6 +16,7 @@ from edge.cdr import decode, define, encode, load_definition, message, schema_te
 from ptp.status import Check, Level, SyncState, TimeStatus
 
 __all__ = [
+    "AlarmState",
     "DiskUsage",
     "Event",
     "HostMetrics",
@@ -48,12 +49,14 @@ for _name in (
     "TimeSyncStatus",
     "TimeCheck",
     "HubHeartbeat",
+    "AlarmState",
 ):
     load_definition(f"fleetdaq_msgs/msg/{_name}")
 
 EVENT_TYPE: Final = "fleetdaq_msgs/msg/Event"
 NODE_HEALTH_TYPE: Final = "fleetdaq_msgs/msg/NodeHealth"
 HUB_HEARTBEAT_TYPE: Final = "fleetdaq_msgs/msg/HubHeartbeat"
+ALARM_STATE_TYPE: Final = "fleetdaq_msgs/msg/AlarmState"
 
 
 @message("diagnostic_msgs/msg/KeyValue")
@@ -302,7 +305,34 @@ class HubHeartbeat:
     sequence: int
 
 
+@message(ALARM_STATE_TYPE)
+@dataclass(frozen=True, slots=True)
+class AlarmState:
+    """One alarm after a transition (recorded on ``/alarms``)."""
+
+    time_ns: int
+    name: str
+    kind: str
+    node: str
+    stream: str
+    channel: str
+    condition: str
+    severity: str
+    state: str
+    active: bool
+    transition: str
+    value: float
+    unit: str
+    since_ns: int
+    count: int
+    user: str
+    host: str
+    note: str
+    shelved_until_ns: int
+
+
 SCHEMAS: Final = {
-    name: schema_text(name) for name in (EVENT_TYPE, NODE_HEALTH_TYPE, HUB_HEARTBEAT_TYPE)
+    name: schema_text(name)
+    for name in (EVENT_TYPE, NODE_HEALTH_TYPE, HUB_HEARTBEAT_TYPE, ALARM_STATE_TYPE)
 }
 """The ros2msg schema (with dependencies) of every message here that the hub records."""
