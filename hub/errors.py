@@ -9,3 +9,8 @@ class HubError(Exception):
 
 class RouterError(HubError):
     """The embedded Zenoh router could not start (e.g. the listen port is taken)."""
+
+
+class SecretError(HubError):
+    """A secret the site file points to (a password environment variable or file) is missing,
+    unreadable, or readable by other users. The message is one line saying which and why."""

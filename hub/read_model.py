@@ -73,6 +73,27 @@ class RecorderView:
 
 
 @dataclass(frozen=True, slots=True)
+class AlarmView:
+    """One alarm in the read model (what `fleetdaq alarms` and the dashboard show)."""
+
+    name: str
+    kind: str
+    node: str
+    stream: str
+    channel: str
+    severity: str
+    state: str
+    active: bool
+    since_ns: int
+    value: float
+    unit: str
+    count: int
+    condition: str
+    description: str
+    shelved_until_ns: int
+
+
+@dataclass(frozen=True, slots=True)
 class HubView:
     site: str
     time_ns: int
@@ -80,6 +101,11 @@ class HubView:
     streams: tuple[StreamView, ...] = ()
     recorder: RecorderView = RecorderView()
     hub_health: NodeHealth | None = None
+    alarms: tuple[AlarmView, ...] = ()
+    alarm_totals: dict[str, int] = field(default_factory=dict)
+    """Transitions since the hub started: raised, cleared, acked, shelved, disabled."""
+    notifier: dict[str, Any] = field(default_factory=dict)
+    """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
     fleet: dict[str, Any] = field(default_factory=dict)
     """The fleet's time (`hub.fleet_time.FleetView.to_dict`)."""
     recent_events: tuple[Event, ...] = ()

@@ -36,6 +36,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import EVENT_TYPE, Event
 from edge.wire import decode_u64, encode_u64, plausible_time, read_header
+from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.read_model import ReadModel, RecorderView
 from hub.refused import RefusedKeys
@@ -64,6 +65,7 @@ class Recorder:
         bus: EventBus,
         model: ReadModel,
         refused: RefusedKeys,
+        feed: BatchFeed | None = None,
         max_queued_bytes: int = 512 * 1024 * 1024,
     ) -> None:
         self.router = router
@@ -85,6 +87,8 @@ class Recorder:
             self.routes[self.keys.data(node, stream)] = st
         self.streams = {(st.node, st.stream): st for st in self.routes.values()}
         self.refused = refused
+        self.feed = feed or BatchFeed()
+        """Accepted batches go on to the services that look at the data (alarms, ...)."""
         self.write_errors = 0
         self.writer_errors = 0
         self.events_not_recorded = 0
@@ -426,6 +430,8 @@ class Recorder:
             st.deferred += 1
             return
         self._resumed()
+        late = st.last_sequence is not None and h.sequence < st.last_sequence
+        self.feed.publish(FedBatch(node, stream, h, payload, recv_ns, late))
         gap = st.count(
             h.sequence, h.scan_count, h.samples, recv_ns, h.first_sample_time_ns, h.sample_period_ns
         )

@@ -1,7 +1,6 @@
-"""What only the hub uses from the site file: its router endpoints and the recorder.
-
-(Alarms, notifications, rules, the dashboard and security join here as they land.) It lives in
-`edge.config` because the whole site file is validated on every machine.
+"""What only the hub uses from the site file: its router endpoints, the recorder, the universal
+alarms and notifications (`edge.config.notify`). It lives in `edge.config` because the whole
+site file is validated on every machine.
 """
 
 from __future__ import annotations
@@ -10,6 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
+from edge.config.alarms import UniversalAlarms
+from edge.config.notify import NotifyConfig
 from edge.schema import Endpoints, Float, Int, Strict
 
 
@@ -43,3 +44,9 @@ class HubConfig(Strict):
     """Recording root. Default: the per-system location of `edge.paths.default_data_dir`
     (never the current directory); `fleetdaq hub --data` overrides."""
     recorder: RecorderConfig = RecorderConfig()
+    universal_alarms: UniversalAlarms = UniversalAlarms()
+    """Alarms every site gets without config; tune or switch off (`false`) each."""
+    notify: NotifyConfig = NotifyConfig()
+    alarm_journal: str | None = None
+    """Where alarm states and the ack/shelve audit are kept across restarts (default:
+    `<data_dir>/alarms.journal`)."""

@@ -5,6 +5,7 @@ syntax errors and duplicate keys)."""
 from __future__ import annotations
 
 import difflib
+import re
 from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, Union, get_args, get_origin
@@ -16,6 +17,9 @@ from edge.config.site import SiteConfig
 from edge.drivers.table import DRIVERS
 from edge.errors import ConfigError
 from edge.schema import CHANNEL_NAME
+
+_ALARM_TAGS = ("channel", "stream", "node", "hub")
+_KEY_PATH = re.compile(r"^([a-z_]+(?:\.[A-Za-z0-9_/-]+|\[\d+\])+): (.*)$", re.S)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -103,6 +107,8 @@ def _user_loc(loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
             continue  # the error is about a mapping key itself; the path already ends with it
         if i == 4 and loc[0] == "nodes" and loc[2] == "streams" and item in DRIVERS:
             continue  # pydantic puts the union tag in the path; the user never wrote it
+        if i == 2 and loc[0] == "alarms" and item in _ALARM_TAGS:
+            continue  # likewise the alarm's kind
         out.append(item)
     return tuple(out)
 
@@ -127,9 +133,10 @@ def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
             annotation = get_args(_strip(annotation))[1]
         candidates = _models_in(annotation)
         if len(candidates) > 1:  # a discriminated union: pydantic puts the tag next
-            tag = loc[i] if i < len(loc) else None
-            spec = DRIVERS.get(str(tag))
-            model = spec.schema if spec is not None else None
+            tag = str(loc[i]) if i < len(loc) else ""
+            spec = DRIVERS.get(tag)
+            by_field = [m for m in candidates if tag in m.model_fields]
+            model = spec.schema if spec is not None else (by_field[0] if by_field else None)
             i += 1
         else:
             model = candidates[0] if candidates else None
@@ -284,7 +291,11 @@ def parse_config(text: str, source: str) -> SiteConfig:
         first = errors[0]
         more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
         where = _path(list(_user_loc(tuple(first["loc"]))))
-        raise ConfigError(_one_line(f"{source}: {where}: {_describe(dict(first))}{more}")) from None
+        what = _describe(dict(first))
+        nested = _KEY_PATH.match(what)
+        if where == "(top level)" and nested:  # a whole-site check names its own key path
+            where, what = nested.group(1), nested.group(2)
+        raise ConfigError(_one_line(f"{source}: {where}: {what}{more}")) from None
 
 
 def load_config(path: str | Path) -> SiteConfig:

@@ -1,0 +1,153 @@
+"""When an alarm's condition holds, after its on-delay and off-delay.
+
+- `Delayed`: a yes/no checked now and then (stream and node health, the hub), with delays in
+  wall time.
+- `SampleCondition`: a channel's limit (or its sensor fault) over every sample of every batch,
+  with a deadband and delays in acquisition time, in numpy: a batch that cannot change the
+  condition (every sample on the same side) costs two comparisons against the batch's
+  per-channel minimum and maximum, computed once per batch for every channel of the stream;
+  only a batch that crosses is looked at sample by sample, and then only at the samples where
+  the condition flips.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+MAX_FLIPS_PER_BATCH = 64
+"""A condition flipping more often than this within one batch is chattering: only its first
+flips and its final state are reported (the rest are counted in `chatter_skipped`)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Flip:
+    time_ns: int
+    active: bool
+    value: float
+
+
+class Delayed:
+    """A condition with an on-delay and an off-delay (ns), fed its raw value at times."""
+
+    def __init__(self, on_delay_ns: int = 0, off_delay_ns: int = 0) -> None:
+        self.on_delay_ns = on_delay_ns
+        self.off_delay_ns = off_delay_ns
+        self.active = False
+        self._raw = False
+        self._since = 0
+
+    def update(self, raw: bool, t: int, value: float = float("nan")) -> Flip | None:
+        """Feed the raw condition at time `t`; a `Flip` when the delayed condition changes."""
+        if raw != self._raw:
+            self._raw = raw
+            self._since = t
+        if raw == self.active:
+            return None
+        delay = self.on_delay_ns if raw else self.off_delay_ns
+        if t - self._since >= delay:
+            self.active = raw
+            return Flip(self._since + delay, raw, value)
+        return None
+
+
+class SampleCondition:
+    """One limit of one channel ("above"/"below" with a deadband) or its sensor fault
+    ("fault": samples invalid), over batches in acquisition time."""
+
+    def __init__(
+        self,
+        check: str,
+        threshold: float,
+        deadband: float,
+        on_delay_ns: int,
+        off_delay_ns: int,
+    ) -> None:
+        self.check = check
+        self.threshold = threshold
+        self.clear_at = (
+            threshold - deadband
+            if check == "above"
+            else threshold + deadband
+            if check == "below"
+            else 0.0
+        )
+        self.on_delay_ns = on_delay_ns
+        self.off_delay_ns = off_delay_ns
+        self.active = False
+        """The delayed condition (what the alarm follows)."""
+        self.raw = False
+        """The condition with its deadband, sample by sample, before the delays."""
+        self.raw_since = 0
+        self.chatter_skipped = 0
+
+    def could_change(self, lo: float, hi: float, has_nan: bool) -> bool:
+        """Can a batch whose samples lie in [lo, hi] (NaN: some invalid) change anything?"""
+        if self.check == "fault":
+            return has_nan != self.raw or self.raw != self.active
+        if self.raw != self.active:
+            return True  # a delay is running: the batch's times matter
+        if self.check == "above":
+            return (not self.raw and hi > self.threshold) or (self.raw and lo < self.clear_at)
+        return (not self.raw and lo < self.threshold) or (self.raw and hi > self.clear_at)
+
+    def evaluate(self, x: npt.NDArray[np.float64], t0_ns: int, period_ns: float) -> list[Flip]:
+        """The delayed condition's flips within this batch (`x`: one channel's samples)."""
+        n = x.size
+        if self.check == "fault":
+            on = np.isnan(x)
+            off = ~on
+        elif self.check == "above":
+            on = x > self.threshold
+            off = x < self.clear_at
+        else:
+            on = x < self.threshold
+            off = x > self.clear_at
+        # The raw condition changes where the last decisive sample changes sign.
+        decisive = np.flatnonzero(on | off)
+        if decisive.size:
+            sign = on[decisive]
+            prev = np.concatenate(([self.raw], sign[:-1]))
+            at = decisive[sign != prev]
+            new = sign[sign != prev]
+        else:
+            at = np.empty(0, dtype=np.intp)
+            new = np.empty(0, dtype=bool)
+        end_ns = t0_ns + round(n * period_ns)
+        flips: list[Flip] = []
+        raw, since = self.raw, self.raw_since
+        points = list(zip(at.tolist(), new.tolist(), strict=True))
+        if len(points) > MAX_FLIPS_PER_BATCH:
+            self.chatter_skipped += len(points) - MAX_FLIPS_PER_BATCH
+            points = points[: MAX_FLIPS_PER_BATCH - 1] + points[-1:]
+        for idx, value in [*points, (n, None)]:
+            t = t0_ns + round(idx * period_ns) if idx < n else end_ns
+            # Before this point the raw condition has been `raw` since `since`.
+            if raw != self.active:
+                delay = self.on_delay_ns if raw else self.off_delay_ns
+                due = since + delay
+                if due <= t:
+                    self.active = raw
+                    k = min(n - 1, max(0, int((due - t0_ns) / period_ns)))
+                    flips.append(Flip(max(due, t0_ns), raw, float(x[k])))
+            if value is None:
+                break
+            raw, since = bool(value), t
+        self.raw, self.raw_since = raw, since
+        return flips
+
+
+def batch_extremes(
+    data: npt.NDArray[np.float64],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+    """Per channel of a (scans, channels) batch: minimum, maximum, any invalid sample. Two
+    reductions for the whole batch (NaN propagates through max: it marks invalid samples)."""
+    hi = data.max(axis=0)
+    lo = data.min(axis=0)
+    has_nan = np.isnan(hi)
+    if has_nan.any():
+        lo = np.where(has_nan, np.nanmin(data, axis=0, initial=np.inf), lo)
+        hi = np.where(has_nan, np.nanmax(data, axis=0, initial=-np.inf), hi)
+    return lo, hi, has_nan

@@ -1,0 +1,155 @@
+"""Operators' requests about alarms: ``fleetdaq/<site>/hub/alarms``, a Zenoh query whose payload
+is a JSON request and whose reply is JSON.
+
+Request: ``{"action": "list" | "ack" | "shelve" | "unshelve" | "disable" | "enable",
+"names": [name or pattern, ...], "all": bool, "for_s": seconds (shelve), "note": text,
+"user": who, "host": from where}``. ``all`` with ``ack`` means every unacked alarm.
+Reply: ``{"ok": bool, "error": text, "results": [{"name", "done", "state" or "reason"}],
+"alarms": [every alarm's view]}``. Everything in a request is checked before anything is done.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import logging
+from typing import Any
+
+from edge.keys import SiteKeys
+from hub.alarms.states import UNACKED, State
+from hub.alarms.supervisor import Supervisor
+from hub.read_model import to_jsonable
+from hub.router import Router
+
+log = logging.getLogger("fleetdaq.alarms")
+
+ACTIONS = ("list", "ack", "shelve", "unshelve", "disable", "enable")
+MAX_REQUEST_BYTES = 64 * 1024
+MAX_SHELVE_S = 30 * 24 * 3600.0
+
+
+class BadRequest(ValueError):
+    pass
+
+
+def _text(req: dict[str, Any], key: str, limit: int = 500) -> str:
+    value = req.get(key, "")
+    if not isinstance(value, str) or len(value) > limit:
+        raise BadRequest(f"{key} must be text of at most {limit} characters")
+    return value
+
+
+def parse_request(raw: bytes) -> dict[str, Any]:
+    if len(raw) > MAX_REQUEST_BYTES:
+        raise BadRequest(f"a request of {len(raw)} bytes (at most {MAX_REQUEST_BYTES})")
+    try:
+        req = json.loads(raw or b"{}")
+    except (ValueError, RecursionError):
+        raise BadRequest("the request is not JSON") from None
+    if not isinstance(req, dict):
+        raise BadRequest("the request is not a JSON object")
+    unknown = set(req) - {"action", "names", "all", "for_s", "note", "user", "host"}
+    if unknown:
+        raise BadRequest(f"unknown field(s): {', '.join(sorted(unknown))}")
+    action = req.get("action", "list")
+    if action not in ACTIONS:
+        raise BadRequest(f"unknown action {action!r} (one of {', '.join(ACTIONS)})")
+    names = req.get("names", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+        raise BadRequest("names must be a list of alarm names or patterns")
+    if len(names) > 1000:
+        raise BadRequest("at most 1000 names")
+    if not isinstance(req.get("all", False), bool):
+        raise BadRequest("all must be true or false")
+    for_s = req.get("for_s", 0.0)
+    if isinstance(for_s, bool) or not isinstance(for_s, int | float):
+        raise BadRequest("for_s must be a number of seconds")
+    if action == "shelve" and not 0 < for_s <= MAX_SHELVE_S:
+        raise BadRequest(f"a shelve lasts more than 0 s and at most {MAX_SHELVE_S:g} s")
+    if action != "list" and not names and not req.get("all"):
+        raise BadRequest("name the alarm(s), or ask for all")
+    return {
+        "action": action,
+        "names": names,
+        "all": bool(req.get("all", False)),
+        "for_s": float(for_s),
+        "note": _text(req, "note"),
+        "user": _text(req, "user", 100) or "unknown",
+        "host": _text(req, "host", 255) or "unknown",
+    }
+
+
+class AlarmRequests:
+    name = "alarm-requests"
+
+    def __init__(self, router: Router, keys: SiteKeys, supervisor: Supervisor) -> None:
+        self.router = router
+        self.key = keys.hub("alarms")
+        self.supervisor = supervisor
+        self._queryable: Any = None
+
+    def start(self) -> None:
+        self._queryable = self.router.session.declare_queryable(self.key, self._on_query)
+
+    def stop(self) -> None:
+        if self._queryable is not None:
+            self._queryable.undeclare()
+            self._queryable = None
+
+    def failure(self) -> str | None:
+        return None
+
+    def handle(self, raw: bytes) -> dict[str, Any]:
+        try:
+            req = parse_request(raw)
+        except BadRequest as err:
+            return {"ok": False, "error": str(err), "results": [], "alarms": []}
+        sup = self.supervisor
+        names = self._resolve(req)
+        results: list[dict[str, Any]] = []
+        ok = True
+        if req["action"] != "list":
+            if not names:
+                return {
+                    "ok": False,
+                    "error": "no alarm matches " + (", ".join(req["names"]) or "that"),
+                    "results": [],
+                    "alarms": self._alarms(),
+                }
+            for name, done, what in sup.operate(
+                req["action"], names, req["user"], req["host"], req["note"], req["for_s"]
+            ):
+                results.append({"name": name, "done": done, "state" if done else "reason": what})
+                ok = ok and done
+        return {"ok": ok, "error": "", "results": results, "alarms": self._alarms()}
+
+    def _resolve(self, req: dict[str, Any]) -> list[str]:
+        sup = self.supervisor
+        if req["all"]:
+            if req["action"] == "ack":
+                return [n for n, a in sup.alarms.items() if a.status.state in UNACKED]
+            if req["action"] == "unshelve":
+                return [n for n, a in sup.alarms.items() if a.status.state is State.SHELVED]
+            return list(sup.alarms)
+        out: list[str] = []
+        for pattern in req["names"]:
+            hits = fnmatch.filter(sup.alarms, pattern) if any(c in pattern for c in "*?[") else []
+            for n in hits or [pattern]:
+                if n not in out:
+                    out.append(n)
+        return out
+
+    def _alarms(self) -> list[Any]:
+        with self.supervisor.lock:
+            views = [a.view() for a in self.supervisor.alarms.values()]
+        out: list[Any] = to_jsonable(views)
+        return out
+
+    def _on_query(self, query: Any) -> None:
+        try:
+            payload = query.payload
+            raw = payload.to_bytes() if payload is not None else b""
+            reply = self.handle(raw)
+            query.reply(self.key, json.dumps(to_jsonable(reply)).encode())
+        except Exception:  # a request must never take the service down
+            log.exception("answering an alarm request failed")
