@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import subprocess
 import sys
@@ -33,7 +34,31 @@ def status_view(view: HubView, site: SiteConfig, elapsed: float) -> Group:
             "red" if e.level >= logging.ERROR else "yellow" if e.level >= logging.WARNING else ""
         )
         events.add_row(format_event(e), style=style)
-    return Group(status_table(view, site, elapsed), events)
+    return Group(status_table(view, site, elapsed), alarm_table(view), events)
+
+
+_SEVERITY_STYLE = {"critical": "bold red", "major": "red", "minor": "yellow", "info": ""}
+
+
+def alarm_table(view: HubView) -> Table:
+    """The alarms that are not normal, worst first."""
+    totals = view.alarm_totals
+    caption = (
+        f"raised {totals.get('raised', 0)} · cleared {totals.get('cleared', 0)} · "
+        f"acked {totals.get('acked', 0)} · `fleetdaq alarms ack NAME` acknowledges"
+    )
+    t = Table(title="alarms", caption=caption, title_justify="left")
+    for col in ("alarm", "state", "severity", "value", "condition"):
+        t.add_column(col)
+    order = {"critical": 0, "major": 1, "minor": 2, "info": 3}
+    shown = [a for a in view.alarms if a.state != "normal"]
+    for a in sorted(shown, key=lambda a: (order[a.severity], a.name)):
+        value = "" if math.isnan(a.value) else f"{a.value:.4g} {a.unit}".rstrip()
+        style = _SEVERITY_STYLE[a.severity] if a.state.startswith("active") else "dim"
+        t.add_row(a.name, a.state, a.severity, value, a.condition, style=style)
+    if not shown:
+        t.add_row("none in alarm", "", "", "", f"{len(view.alarms)} defined")
+    return t
 
 
 def status_table(view: HubView, site: SiteConfig, elapsed: float) -> Table:

@@ -27,6 +27,9 @@ from typing import Any
 from edge.config.site import SiteConfig
 from edge.keys import SiteKeys
 from edge.paths import default_data_dir
+from hub.alarms.requests import AlarmRequests
+from hub.alarms.supervisor import Supervisor
+from hub.batch_feed import BatchFeed
 from hub.bus import EventBus
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
@@ -77,14 +80,27 @@ class HubRuntime:
         self.bus = EventBus()
         self.refused = RefusedKeys(self.bus, self.model)
 
+        self.feed = BatchFeed()
         self.router = Router(self.listen)
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(
-            self.router, site, self.data_dir, self.bus, self.model, self.refused
+            self.router, site, self.data_dir, self.bus, self.model, self.refused, self.feed
         )
         self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
         self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
         self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        journal = site.hub.alarm_journal
+        self.supervisor = Supervisor(
+            site,
+            self.bus,
+            self.model,
+            self.recorder,
+            self.feed,
+            Path(journal) if journal else self.data_dir / "alarms.journal",
+            notifier=None,
+            snapshot=self.snapshot,
+        )
+        self.alarm_requests = AlarmRequests(self.router, self.keys, self.supervisor)
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
         self.status = StatusService(self.router, self.keys, self.snapshot)
         self.services = ServiceStack(
@@ -96,6 +112,8 @@ class HubRuntime:
                 self.nodes,
                 self.fleet,
                 self.hub_health,
+                self.supervisor,
+                self.alarm_requests,
                 self.heartbeat,
                 self.status,
             ]
@@ -164,6 +182,7 @@ class HubRuntime:
         """The final accounting (per stream, files, refused traffic, events by level)."""
         out = self.recorder.summary()
         out["events"] = dict(self.event_log.counts)
+        out["alarms"] = dict(self.supervisor.totals)
         out["bus"] = list(self.snapshot().bus)
         out["failures"] = [f"{name}: {why}" for name, why in self.failures()]
         return out

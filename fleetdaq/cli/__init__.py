@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 COMMANDS: dict[str, str] = {
+    "alarms": "fleetdaq.cli.alarms:alarms",
     "check": "fleetdaq.cli.check:check",
     "demo": "fleetdaq.cli.demo:demo",
     "edge": "fleetdaq.cli.edge:edge",

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,7 +116,6 @@ class SampleCondition:
         else:
             at = np.empty(0, dtype=np.intp)
             new = np.empty(0, dtype=bool)
-        end_ns = t0_ns + round(n * period_ns)
         flips: list[Flip] = []
         raw, since = self.raw, self.raw_since
         points = list(zip(at.tolist(), new.tolist(), strict=True))
@@ -123,18 +123,20 @@ class SampleCondition:
             self.chatter_skipped += len(points) - MAX_FLIPS_PER_BATCH
             points = points[: MAX_FLIPS_PER_BATCH - 1] + points[-1:]
         for idx, value in [*points, (n, None)]:
-            t = t0_ns + round(idx * period_ns) if idx < n else end_ns
-            # Before this point the raw condition has been `raw` since `since`.
-            if raw != self.active:
+            # Samples before `idx` (back to the previous point) had the raw condition `raw`,
+            # since `since`: the delayed condition follows once a sample shows it held long
+            # enough.
+            if idx > 0 and raw != self.active:
                 delay = self.on_delay_ns if raw else self.off_delay_ns
                 due = since + delay
-                if due <= t:
+                last_ns = t0_ns + round((idx - 1) * period_ns)
+                if due <= last_ns:
                     self.active = raw
-                    k = min(n - 1, max(0, int((due - t0_ns) / period_ns)))
+                    k = min(n - 1, max(0, math.ceil((due - t0_ns) / period_ns)))
                     flips.append(Flip(max(due, t0_ns), raw, float(x[k])))
             if value is None:
                 break
-            raw, since = bool(value), t
+            raw, since = bool(value), t0_ns + round(idx * period_ns)
         self.raw, self.raw_since = raw, since
         return flips
 

@@ -131,10 +131,25 @@ class AlarmRequests:
             if req["action"] == "unshelve":
                 return [n for n, a in sup.alarms.items() if a.status.state is State.SHELVED]
             return list(sup.alarms)
+        # A pattern takes the alarms it matches that the action applies to (acking
+        # "node_down/*" acks the unacked ones and says nothing of the others); a plain name is
+        # taken as given, so a refusal names its reason.
+        applies = {
+            "ack": lambda s: s in UNACKED,
+            "unshelve": lambda s: s is State.SHELVED,
+            "enable": lambda s: s is State.DISABLED,
+        }.get(req["action"], lambda s: True)
         out: list[str] = []
         for pattern in req["names"]:
-            hits = fnmatch.filter(sup.alarms, pattern) if any(c in pattern for c in "*?[") else []
-            for n in hits or [pattern]:
+            if any(c in pattern for c in "*?["):
+                hits = [
+                    n
+                    for n in fnmatch.filter(sup.alarms, pattern)
+                    if applies(sup.alarms[n].status.state)
+                ]
+            else:
+                hits = [pattern]
+            for n in hits:
                 if n not in out:
                     out.append(n)
         return out

@@ -75,8 +75,7 @@ class AlarmStatus:
         if active == self.active:
             return None
         self.active = active
-        if active:
-            self.value = value
+        self.value = value
         if self.state in (State.SHELVED, State.DISABLED):
             return None  # tracked, not announced
         if active:

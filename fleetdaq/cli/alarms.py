@@ -1,0 +1,209 @@
+"""``fleetdaq alarms``: list, ack, shelve, unshelve, disable and enable the hub's alarms (requests
+with a reply over Zenoh), and the alarm performance report of a recording."""
+
+from __future__ import annotations
+
+import datetime as dt
+import getpass
+import json
+import math
+import re
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from fleetdaq.cli.common import fail, load_site, open_client
+
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
+_UNITS = {None: 1.0, "s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+def parse_duration(text: str) -> float:
+    """ "90", "90s", "15m", "2h", "1d" -> seconds."""
+    m = _DURATION.match(text)
+    if m is None or float(m.group(1)) <= 0:
+        raise click.BadParameter(f"{text!r} is not a duration like 90s, 15m, 2h or 1d")
+    return float(m.group(1)) * _UNITS[m.group(2)]
+
+
+def _request(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> dict[str, Any]:
+    from edge.keys import SiteKeys
+
+    site = load_site(config)
+    endpoints = list(connect) or list(site.hub.listen)
+    session = open_client(endpoints)
+    try:
+        key = SiteKeys(site.site).hub("alarms")
+        for reply in session.get(key, payload=json.dumps(body).encode(), timeout=10.0):
+            if reply.ok is not None:
+                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                return out
+    finally:
+        session.close()
+    fail(f"no hub answered at {', '.join(endpoints)} (is it running?)", 2)
+
+
+def _when(ns: int) -> str:
+    if not ns:
+        return "-"
+    return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%SZ")
+
+
+def _table(alarms: list[dict[str, Any]], everything: bool) -> str:
+    rows = [("name", "state", "severity", "since", "value", "count")]
+    order = {"critical": 0, "major": 1, "minor": 2, "info": 3}
+    shown = [a for a in alarms if everything or a["state"] != "normal" or a["active"]]
+    for a in sorted(shown, key=lambda a: (a["state"] == "normal", order[a["severity"]], a["name"])):
+        value = a["value"]
+        text = (
+            "-"
+            if value is None or (isinstance(value, float) and math.isnan(value))
+            else f"{value:.6g} {a['unit']}".rstrip()
+        )
+        state = a["state"] + (
+            " (condition holds)" if a["state"] in ("shelved", "disabled") and a["active"] else ""
+        )
+        if a["state"] == "shelved":
+            state += f" until {_when(a['shelved_until_ns'])}"
+        rows.append((a["name"], state, a["severity"], _when(a["since_ns"]), text, str(a["count"])))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    if len(rows) == 1:
+        lines.append(f"no alarm in alarm ({len(alarms)} defined; --all lists them)")
+    return "\n".join(lines)
+
+
+def _common(f: Any) -> Any:
+    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
+        f
+    )
+    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
+    return f
+
+
+@click.group(invoke_without_command=True)
+@click.pass_context
+@click.option("--config", "config", type=click.Path(), help="Site file.")
+@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@click.option("--json", "as_json", is_flag=True, help="Every alarm as JSON.")
+@click.option("--all", "everything", is_flag=True, help="Also the alarms that are normal.")
+def alarms(
+    ctx: click.Context,
+    config: str | None,
+    connect: tuple[str, ...],
+    as_json: bool,
+    everything: bool,
+) -> None:
+    """The hub's alarms: name, state, severity, since, value, count (in alarm first)."""
+    if ctx.invoked_subcommand is not None:
+        return
+    if config is None:
+        fail("--config: the site file is needed to reach its hub")
+    reply = _request(config, connect, {"action": "list"})
+    if as_json:
+        click.echo(json.dumps(reply["alarms"], indent=2))
+    else:
+        click.echo(_table(reply["alarms"], everything))
+
+
+def _act(
+    config: str,
+    connect: tuple[str, ...],
+    action: str,
+    names: tuple[str, ...],
+    every: bool,
+    note: str,
+    for_s: float = 0.0,
+) -> None:
+    if not names and not every:
+        fail(f"{action}: name the alarm(s) (patterns like 'stream_stale/*' work), or --all")
+    body = {
+        "action": action,
+        "names": list(names),
+        "all": every,
+        "note": note,
+        "for_s": for_s,
+        "user": getpass.getuser(),
+        "host": socket.gethostname(),
+    }
+    reply = _request(config, connect, body)
+    if reply.get("error"):
+        fail(f"{action}: {reply['error']}", 1)
+    for r in reply["results"]:
+        if r["done"]:
+            click.echo(f"{r['name']}: {action} -> {r['state']}")
+        else:
+            click.echo(f"{r['name']}: not {action}ed: {r['reason']}", err=True)
+    sys.exit(0 if reply["ok"] else 1)
+
+
+@alarms.command()
+@_common
+@click.argument("names", nargs=-1)
+@click.option("--all", "every", is_flag=True, help="Every unacked alarm.")
+@click.option("--note", default="", help="Why (goes into the audit and the mails).")
+def ack(
+    config: str, connect: tuple[str, ...], names: tuple[str, ...], every: bool, note: str
+) -> None:
+    """Acknowledge alarms. Exit 1 if one could not be acked (and why)."""
+    _act(config, connect, "ack", names, every, note)
+
+
+@alarms.command()
+@_common
+@click.argument("names", nargs=-1)
+@click.option("--for", "duration", required=True, help="How long: 90s, 15m, 2h, 1d.")
+@click.option("--note", default="", help="Why (goes into the audit).")
+def shelve(
+    config: str, connect: tuple[str, ...], names: tuple[str, ...], duration: str, note: str
+) -> None:
+    """Shelve alarms for a while: set aside, back in their real state when it expires."""
+    _act(config, connect, "shelve", names, False, note, parse_duration(duration))
+
+
+@alarms.command()
+@_common
+@click.argument("names", nargs=-1)
+@click.option("--all", "every", is_flag=True, help="Every shelved alarm.")
+@click.option("--note", default="")
+def unshelve(
+    config: str, connect: tuple[str, ...], names: tuple[str, ...], every: bool, note: str
+) -> None:
+    """Bring shelved alarms back before their shelve expires."""
+    _act(config, connect, "unshelve", names, every, note)
+
+
+@alarms.command()
+@_common
+@click.argument("names", nargs=-1)
+@click.option("--note", default="", help="Why it is out of service (goes into the audit).")
+def disable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note: str) -> None:
+    """Take alarms out of service (until enabled)."""
+    _act(config, connect, "disable", names, False, note)
+
+
+@alarms.command()
+@_common
+@click.argument("names", nargs=-1)
+@click.option("--note", default="")
+def enable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note: str) -> None:
+    """Put disabled alarms back in service."""
+    _act(config, connect, "enable", names, False, note)
+
+
+@alarms.command()
+@click.argument("session", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="The figures as JSON.")
+def report(session: Path, as_json: bool) -> None:
+    """Alarm performance of a recording (ISA-18.2 / EEMUA 191): alarms per 10 min, time in
+    flood, the top 10, chattering and standing alarms."""
+    from hub.alarms.report import ReportError, alarm_report
+
+    try:
+        r = alarm_report(session)
+    except ReportError as err:
+        fail(f"{session}: {err}")
+    click.echo(json.dumps(r.to_dict(), indent=2) if as_json else r.format())

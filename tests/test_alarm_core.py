@@ -1,0 +1,245 @@
+"""The alarm engine's parts on their own: ISA-18.2 states, conditions over samples (numpy,
+acquisition time) and over time (delays), the journal, operators' requests, the report."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edge.config.load import parse_config
+from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, batch_extremes
+from hub.alarms.definitions import build_definitions
+from hub.alarms.journal import Journal
+from hub.alarms.requests import BadRequest, parse_request
+from hub.alarms.states import AlarmStatus, Refused, State
+
+S = 1_000_000_000
+
+
+# --- states ---------------------------------------------------------------------------------
+
+
+def test_raise_ack_clear_is_normal_again():
+    a = AlarmStatus(latch=False)
+    assert a.condition(True, 1, 5.0).transition == "raised"  # type: ignore[union-attr]
+    assert a.state is State.ACTIVE_UNACKED
+    assert a.count == 1
+    assert a.ack(2, "ann", "ops1", "seen").state is State.ACTIVE_ACKED
+    assert a.condition(False, 3).state is State.NORMAL  # type: ignore[union-attr]
+
+
+def test_an_unlatched_alarm_that_clears_unacked_is_normal_a_latched_one_returned_unacked():
+    free, latched = AlarmStatus(latch=False), AlarmStatus(latch=True)
+    for a in (free, latched):
+        a.condition(True, 1)
+        a.condition(False, 2)
+    assert free.state is State.NORMAL
+    assert latched.state is State.RETURNED_UNACKED
+    assert latched.ack(3, "ann", "ops1").state is State.NORMAL
+
+
+def test_raised_again_while_returned_unacked_is_active_unacked_and_counted():
+    a = AlarmStatus(latch=True)
+    a.condition(True, 1)
+    a.condition(False, 2)
+    change = a.condition(True, 3)
+    assert change is not None
+    assert (change.transition, change.state, a.count) == ("raised", State.ACTIVE_UNACKED, 2)
+
+
+def test_acks_that_do_not_apply_are_refused_with_the_reason():
+    a = AlarmStatus(latch=False)
+    with pytest.raises(Refused, match="nothing to ack: it is normal"):
+        a.ack(1, "ann", "h")
+    a.condition(True, 2)
+    a.ack(3, "ann", "h")
+    with pytest.raises(Refused, match="already acked"):
+        a.ack(4, "ann", "h")
+
+
+def test_a_shelved_alarm_tracks_its_condition_silently_and_returns_to_its_real_state():
+    a = AlarmStatus(latch=False)
+    a.shelve(1, 100, "ann", "h", "maintenance")
+    assert a.condition(True, 2) is None  # not announced
+    assert a.active
+    assert a.expire(50) is None
+    back = a.expire(100)
+    assert back is not None
+    assert (back.transition, back.state) == ("shelve_expired", State.ACTIVE_UNACKED)
+    b = AlarmStatus(latch=False)
+    b.condition(True, 1)
+    b.shelve(2, 100, "ann", "h")
+    b.condition(False, 3)
+    assert b.unshelve(4, "ann", "h").state is State.NORMAL
+
+
+def test_a_disabled_alarm_is_out_of_service_until_enabled():
+    a = AlarmStatus(latch=False)
+    a.disable(1, "ann", "h", "sensor removed")
+    assert a.condition(True, 2) is None
+    with pytest.raises(Refused):
+        a.ack(3, "ann", "h")
+    with pytest.raises(Refused, match="disabled"):
+        a.shelve(3, 10, "ann", "h")
+    assert a.enable(4, "ann", "h").state is State.ACTIVE_UNACKED
+
+
+# --- conditions over samples ----------------------------------------------------------------
+
+
+def _cond(check: str = "above", limit: float = 10.0, deadband: float = 1.0, on: float = 0.0,
+          off: float = 0.0) -> SampleCondition:  # fmt: skip
+    return SampleCondition(check, limit, deadband, round(on * S), round(off * S))
+
+
+def test_a_limit_crossing_is_found_at_the_sample_that_crossed():
+    c = _cond()
+    x = np.array([5.0, 9.0, 11.0, 12.0])
+    flips = c.evaluate(x, 1000 * S, 0.1 * S)
+    assert [(f.time_ns, f.active, f.value) for f in flips] == [(1000 * S + S // 5, True, 11.0)]
+
+
+def test_the_deadband_keeps_a_noisy_value_near_the_limit_from_chattering():
+    c = _cond(limit=10.0, deadband=1.0)
+    x = np.array([11.0, 9.5, 10.5, 9.2, 10.8, 8.9, 9.5])
+    flips = c.evaluate(x, 0, 1.0 * S)
+    assert [(f.time_ns // S, f.active) for f in flips] == [(0, True), (5, False)]
+
+
+def test_the_on_delay_runs_in_acquisition_time_across_batches():
+    c = _cond(on=2.0)
+    assert c.evaluate(np.full(10, 11.0), 0, 0.1 * S) == []  # 1 s above: not yet
+    flips = c.evaluate(np.full(10, 11.0), 1 * S, 0.1 * S)  # ... now 2 s
+    assert flips == []  # due exactly at the end of this batch (2.0 s > 1.9 s last sample)
+    flips = c.evaluate(np.full(10, 11.0), 2 * S, 0.1 * S)
+    assert [(f.time_ns, f.active) for f in flips] == [(2 * S, True)]
+
+
+def test_a_dip_shorter_than_the_off_delay_does_not_clear():
+    c = _cond(off=1.0)
+    c.evaluate(np.full(10, 11.0), 0, 0.1 * S)
+    assert c.active
+    dip = np.concatenate([np.full(5, 5.0), np.full(5, 11.0)])  # 0.5 s below
+    assert c.evaluate(dip, 1 * S, 0.1 * S) == []
+    assert c.active
+
+
+def test_invalid_samples_are_a_sensor_fault_of_their_own_not_a_limit():
+    limit, fault = _cond(), _cond(check="fault")
+    x = np.array([5.0, np.nan, np.nan, 6.0])
+    assert limit.evaluate(x, 0, S) == []
+    flips = fault.evaluate(x, 0, S)
+    assert [(f.time_ns // S, f.active) for f in flips] == [(1, True), (3, False)]
+
+
+def test_a_batch_on_one_side_of_every_limit_needs_no_look_at_its_samples():
+    data = np.column_stack([np.linspace(0, 5, 100), np.linspace(20, 30, 100)])
+    lo, hi, nan = batch_extremes(data)
+    c = _cond(limit=10.0)
+    assert not c.could_change(float(lo[0]), float(hi[0]), bool(nan[0]))
+    assert c.could_change(float(lo[1]), float(hi[1]), bool(nan[1]))
+    data[3, 0] = np.nan
+    lo, hi, nan = batch_extremes(data)
+    assert (bool(nan[0]), float(hi[0]), bool(nan[1])) == (True, 5.0, False)
+
+
+def test_a_chattering_condition_reports_a_bounded_number_of_flips_and_its_final_state():
+    c = _cond(limit=10.0, deadband=0.0)
+    x = np.tile([11.0, 9.0], 5000)  # flips every sample
+    flips = c.evaluate(x, 0, 1e6)
+    assert len(flips) <= MAX_FLIPS_PER_BATCH
+    assert c.chatter_skipped > 0
+    assert c.active is False  # ends below the limit
+
+
+# --- conditions over time -------------------------------------------------------------------
+
+
+def test_a_delayed_condition_flips_at_raw_start_plus_its_delay():
+    d = Delayed(on_delay_ns=5 * S, off_delay_ns=2 * S)
+    assert d.update(True, 10 * S) is None
+    assert d.update(True, 14 * S) is None
+    flip = d.update(True, 16 * S)
+    assert flip is not None
+    assert (flip.time_ns, flip.active) == (15 * S, True)
+    assert d.update(False, 20 * S) is None
+    flip = d.update(False, 23 * S)
+    assert flip is not None
+    assert (flip.time_ns, flip.active) == (22 * S, False)
+
+
+# --- definitions, journal, requests ---------------------------------------------------------
+
+SITE = """\
+site: s
+nodes:
+  wec:
+    clock: {source: chrony}
+    streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a, unit: kN}]}}
+  shore:
+    streams: {env: {driver: environment_sim, rate_hz: 1, channels: [{name: t}]}}
+alarms:
+  load: {channel: wec/t8/a, hihi: 150, hi: 120, lo: 10}
+hub:
+  universal_alarms: {stream_gaps: false}
+"""
+
+
+def test_universal_alarms_exist_without_config_and_limits_expand_per_limit():
+    names = {d.name for d in build_definitions(parse_config(SITE, "s.yaml"))}
+    assert {"node_down/wec", "node_down/shore", "stream_stale/wec/t8", "stream_stale/shore/env",
+            "disk_nearly_full/hub", "disk_nearly_full/wec", "recorder/hub",
+            "clock_unsynced/wec"} <= names  # fmt: skip
+    assert "clock_unsynced/shore" not in names  # no clock source configured there
+    assert not any(n.startswith("stream_gaps/") for n in names)  # switched off
+    assert {"load.hihi", "load.hi", "load.lo", "load.fault"} <= names
+    severities = {d.name: d.severity for d in build_definitions(parse_config(SITE, "s.yaml"))}
+    assert (severities["load.hihi"], severities["load.hi"]) == ("critical", "major")
+
+
+def test_the_journal_keeps_the_last_state_of_each_alarm_and_skips_a_torn_line(tmp_path: Path):
+    j = Journal(tmp_path / "alarms.journal")
+    j.open()
+    j.append({"name": "a", "state": "active_unacked", "active": True, "since_ns": 1, "count": 1})
+    j.append({"name": "a", "state": "active_acked", "active": True, "since_ns": 2, "count": 1},
+             sync=True)  # fmt: skip
+    j.append({"name": "b", "state": "shelved", "active": False, "since_ns": 3, "count": 0})
+    j.close()
+    with (tmp_path / "alarms.journal").open("a") as fh:
+        fh.write('{"name": "a", "state": "nor')  # a crash mid-line
+    j2 = Journal(tmp_path / "alarms.journal")
+    last = j2.load()
+    assert last["a"]["state"] == "active_acked"
+    assert last["b"]["state"] == "shelved"
+    assert j2.torn_lines == 1
+
+
+@pytest.mark.parametrize(
+    ("raw", "problem"),
+    [
+        (b"not json", "not JSON"),
+        (b"[1]", "not a JSON object"),
+        (b'{"action": "explode"}', "unknown action"),
+        (b'{"action": "ack"}', "name the alarm"),
+        (b'{"action": "ack", "names": [1]}', "names must be"),
+        (b'{"action": "shelve", "names": ["x"], "for_s": 0}', "a shelve lasts"),
+        (b'{"action": "ack", "names": ["x"], "extra": 1}', "unknown field"),
+        (b'{"action": "ack", "names": ["x"], "note": "' + b"x" * 600 + b'"}', "note must be"),
+        (b"[" * 100_000, "bytes"),
+    ],
+)
+def test_bad_requests_are_refused_with_the_reason(raw: bytes, problem: str):
+    with pytest.raises(BadRequest, match=problem):
+        parse_request(raw)
+
+
+def test_a_good_request_is_taken_as_given():
+    req = parse_request(json.dumps({"action": "shelve", "names": ["a*"], "for_s": 7200,
+                                    "note": "n", "user": "ann", "host": "h"}).encode())  # fmt: skip
+    assert req["for_s"] == 7200.0
+    assert req["names"] == ["a*"]
+    assert not math.isnan(req["for_s"])
