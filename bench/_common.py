@@ -66,8 +66,11 @@ def site_yaml(
     data_dir: str,
     compression: str = "zstd",
     chunk_size: int = 1024 * 1024,
+    limits: dict[str, tuple[float, float, float, float]] | None = None,
 ) -> str:
-    """A site of `nodes` T8 nodes, each one wave_sim stream of 8 channels at 40 kS/s."""
+    """A site of `nodes` T8 nodes, each one wave_sim stream of 8 channels at 40 kS/s; with
+    `limits` (channel -> lolo, lo, hi, hihi), value alarms with those 4 limits on every
+    channel of every node."""
     chans = "\n".join(
         f"          - {{name: {n}, unit: {u!r}, scale: {s}, offset: {o}}}"
         for n, u, s, o in CHANNELS
@@ -83,6 +86,14 @@ def site_yaml(
 {chans}
 """
     node_text = "".join(f"  {node_name(i)}:\n    streams:\n{stream}" for i in range(nodes))
+    alarm_text = ""
+    if limits:
+        alarm_text = "alarms:\n" + "".join(
+            f"  {node_name(i)}-{ch}: {{channel: {node_name(i)}/{STREAM}/{ch}, lolo: {ll:.6g},"
+            f" lo: {lo:.6g}, hi: {hi:.6g}, hihi: {hh:.6g}, deadband: {abs(hi - lo) * 0.01:.6g}}}\n"
+            for i in range(nodes)
+            for ch, (ll, lo, hi, hh) in limits.items()
+        )
     return f"""\
 site: {SITE}
 hub:
@@ -93,7 +104,7 @@ hub:
     compression: {compression}
     chunk_size: {chunk_size}
 nodes:
-{node_text}"""
+{node_text}{alarm_text}"""
 
 
 def site_config(nodes: int, port: int, data_dir: str, **recorder: Any) -> SiteConfig:

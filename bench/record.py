@@ -224,13 +224,20 @@ def _recorded(hub: Any) -> int:
     return sum(s.batches for s in list(hub.recorder.streams.values()))
 
 
-def run_hub(args: argparse.Namespace, tmp: Path, log: Progress) -> HubRun:
+def run_hub(
+    args: argparse.Namespace,
+    tmp: Path,
+    log: Progress,
+    limits: dict[str, tuple[float, float, float, float]] | None = None,
+) -> HubRun:
     from hub.runtime import HubRuntime
 
     port = free_port()
     ep = endpoint(port)
     data_dir = tmp / "data"
-    yaml_text = site_yaml(args.publishers, port, str(data_dir), args.compression, args.chunk_size)
+    yaml_text = site_yaml(
+        args.publishers, port, str(data_dir), args.compression, args.chunk_size, limits
+    )
     site = parse_config(yaml_text, "<bench>")
     ctx = mp.get_context("spawn")
     sh = Shared(

@@ -138,12 +138,12 @@ def test_invalid_samples_are_a_sensor_fault_of_their_own_not_a_limit():
 
 def test_a_batch_on_one_side_of_every_limit_needs_no_look_at_its_samples():
     data = np.column_stack([np.linspace(0, 5, 100), np.linspace(20, 30, 100)])
-    lo, hi, nan = batch_extremes(data)
+    lo, hi, nan = batch_extremes(np.ascontiguousarray(data.T))
     c = _cond(limit=10.0)
     assert not c.could_change(float(lo[0]), float(hi[0]), bool(nan[0]))
     assert c.could_change(float(lo[1]), float(hi[1]), bool(nan[1]))
     data[3, 0] = np.nan
-    lo, hi, nan = batch_extremes(data)
+    lo, hi, nan = batch_extremes(np.ascontiguousarray(data.T))
     assert (bool(nan[0]), float(hi[0]), bool(nan[1])) == (True, 5.0, False)
 
 

@@ -142,14 +142,17 @@ class SampleCondition:
 
 
 def batch_extremes(
-    data: npt.NDArray[np.float64],
+    columns: npt.NDArray[np.float64],
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
-    """Per channel of a (scans, channels) batch: minimum, maximum, any invalid sample. Two
-    reductions for the whole batch (NaN propagates through max: it marks invalid samples)."""
-    hi = data.max(axis=0)
-    lo = data.min(axis=0)
+    """Per channel of a (channels, scans) C-contiguous array (a batch transposed): minimum,
+    maximum, any invalid sample. Reductions along rows are contiguous: about ten times cheaper
+    than along the columns of the (scans, channels) batch. NaN propagates through max: it marks
+    the channels with invalid samples, whose extremes are then taken without them."""
+    hi = columns.max(axis=1)
+    lo = columns.min(axis=1)
     has_nan = np.isnan(hi)
     if has_nan.any():
-        lo = np.where(has_nan, np.nanmin(data, axis=0, initial=np.inf), lo)
-        hi = np.where(has_nan, np.nanmax(data, axis=0, initial=-np.inf), hi)
+        rows = columns[has_nan]
+        lo[has_nan] = np.nanmin(rows, axis=1, initial=np.inf)
+        hi[has_nan] = np.nanmax(rows, axis=1, initial=-np.inf)
     return lo, hi, has_nan

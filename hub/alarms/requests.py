@@ -134,18 +134,18 @@ class AlarmRequests:
         # A pattern takes the alarms it matches that the action applies to (acking
         # "node_down/*" acks the unacked ones and says nothing of the others); a plain name is
         # taken as given, so a refusal names its reason.
-        applies = {
-            "ack": lambda s: s in UNACKED,
-            "unshelve": lambda s: s is State.SHELVED,
-            "enable": lambda s: s is State.DISABLED,
-        }.get(req["action"], lambda s: True)
+        wanted: set[State] | None = {
+            "ack": set(UNACKED),
+            "unshelve": {State.SHELVED},
+            "enable": {State.DISABLED},
+        }.get(req["action"])
         out: list[str] = []
         for pattern in req["names"]:
             if any(c in pattern for c in "*?["):
                 hits = [
                     n
                     for n in fnmatch.filter(sup.alarms, pattern)
-                    if applies(sup.alarms[n].status.state)
+                    if wanted is None or sup.alarms[n].status.state in wanted
                 ]
             else:
                 hits = [pattern]

@@ -26,7 +26,6 @@ import numpy as np
 from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.messages import ALARM_STATE_TYPE, AlarmState
-from edge.wire import decode_batch
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, batch_extremes
 from hub.alarms.definitions import AlarmDef, build_definitions
 from hub.alarms.journal import Journal
@@ -194,17 +193,19 @@ class Supervisor:
         if not alarms:
             return
         h = b.header
-        data = decode_batch(b.payload).data
-        lo, hi, nan = batch_extremes(data)
+        # The data array is the payload's tail (the recorder checked every length): a view,
+        # and one transposed copy so that each channel is contiguous.
+        n = h.samples
+        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
+        columns = np.ascontiguousarray(data.reshape(h.scan_count, h.channel_count).T)
+        lo, hi, nan = batch_extremes(columns)
         period = h.sample_period_ns
         for col, a in alarms:
             cond = a.samples
             assert cond is not None
             if not cond.could_change(float(lo[col]), float(hi[col]), bool(nan[col])):
                 continue
-            flips = cond.evaluate(
-                np.ascontiguousarray(data[:, col]), h.first_sample_time_ns, period
-            )
+            flips = cond.evaluate(columns[col], h.first_sample_time_ns, period)
             if flips:
                 with self.lock:
                     for flip in flips:

@@ -1,0 +1,220 @@
+"""Value alarms on full-rate T8 streams: what they cost beside what recording costs.
+
+    python bench/alarms.py [--batches 400] [--seconds 10] [--publishers 4]
+
+Part 1 (this process, the same payloads, CPU time of one thread): per million samples, the
+recorder's own work for a batch — check the header, account the sequence, write the bytes into
+an MCAP session with zstd chunks — beside the supervisor's — the numpy views, each channel's
+extremes, 4 limits (lolo, lo, hi, hihi) plus a sensor-fault check on each of 8 channels, and the
+flips where a limit is crossed — on a minute of 8 x 40 kS/s wave signal. Two sets of limits:
+typical (the minute's biggest crests cross lo/hi: alarms raise and clear a few times a minute)
+and busy (every wave crosses every limit on every channel: a badly tuned site, a worst case).
+Target: typical alarms <= 10 % of the recorder.
+
+Part 2 (bench/record.py's hub run: publisher processes into the real hub): recorded MB/s
+without alarms, then with 4 value alarms on every channel of every stream. Target: >= 0.9 x.
+
+Progress on stderr; the last line on stdout is one JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.remove(str(Path(__file__).resolve().parent))
+import edge  # noqa: F401
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import argparse
+import shutil
+import tempfile
+import time
+from typing import Any
+
+import numpy as np
+from _common import (
+    CHANNELS,
+    SAMPLES_PER_BATCH,
+    STREAM,
+    PayloadPool,
+    Progress,
+    emit,
+    exit_on_sigterm,
+    node_name,
+    rounded,
+    site_yaml,
+    t8_stream,
+)
+
+from edge.config.load import parse_config
+from edge.wire import decode_batch, read_header
+from hub.alarms.supervisor import Supervisor
+from hub.batch_feed import BatchFeed, FedBatch
+from hub.bus import EventBus
+from hub.read_model import ReadModel
+from hub.session import RecordingSession, topic_of
+from hub.stream_stats import StreamStats
+
+TARGET_CPU_SHARE = 0.10
+TARGET_THROUGHPUT_RATIO = 0.9
+
+
+class _NoRecorder:
+    """Where the supervisor records its transitions: counted here, not written."""
+
+    def __init__(self) -> None:
+        self.records = 0
+
+    def record(self, *args: Any) -> None:
+        self.records += 1
+
+
+Limits = dict[str, tuple[float, float, float, float]]
+
+
+def limits_from(pool: PayloadPool, busy: bool) -> Limits:
+    """Per channel (lolo, lo, hi, hihi). Typical: lo/hi at the 0.2nd/99.8th percentiles of a
+    minute of signal (the biggest wave crests of the minute cross them), lolo/hihi beyond
+    anything seen. Busy: lo/hi at the 10th/90th percentiles, lolo/hihi at the 2nd/98th: every
+    wave crosses them on every channel (a badly tuned alarm, a worst case)."""
+    data = np.concatenate([decode_batch(p).data for p in pool.payloads])
+    out = {}
+    for i, (name, *_rest) in enumerate(CHANNELS):
+        x = data[:, i]
+        span = float(x.max() - x.min())
+        if busy:
+            q = np.percentile(x, [2, 10, 90, 98])
+            out[name] = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+        else:
+            q = np.percentile(x, [0.2, 99.8])
+            out[name] = (float(x.min()) - 0.1 * span, float(q[0]), float(q[1]),
+                         float(x.max()) + 0.1 * span)  # fmt: skip
+    return out
+
+
+def part1(batches: int, tmp: Path, log: Progress) -> dict[str, Any]:
+    probe = parse_config(site_yaml(1, 7447, str(tmp)), "<bench>")
+    pool = PayloadPool(t8_stream(probe, node_name(0)), node_name(0), batches, 7)
+    node = node_name(0)
+    period = pool.period_ns
+    t0 = time.time_ns()
+    payloads = [bytes(pool.next(i, t0 + round(i * pool.scans * period))) for i in range(batches)]
+    out = {"batches": batches, "seconds_of_signal": rounded(batches * pool.scans * period / 1e9)}
+    recorder_s = _recorder_cpu(probe, node, payloads, tmp)
+    log(f"recorder: {recorder_s:.3f} CPU-s for {batches} batches")
+    msamples = batches * SAMPLES_PER_BATCH / 1e6
+    out["recorder_cpu_s_per_msample"] = rounded(recorder_s / msamples, 5)
+    for label, busy in (("typical", False), ("busy", True)):
+        limits = limits_from(pool, busy)
+        site = parse_config(site_yaml(1, 7447, str(tmp), limits=limits), "<bench>")
+        alarms_s, sup = _alarms_cpu(site, node, payloads, tmp / label)
+        log(f"alarms ({label}): {alarms_s:.3f} CPU-s, {sup.totals['raised']} raised")
+        out[label] = {
+            "alarms": 4 * len(CHANNELS),
+            "raised": sup.totals["raised"],
+            "cleared": sup.totals["cleared"],
+            "alarms_cpu_s_per_msample": rounded(alarms_s / msamples, 5),
+            "share_of_recorder": rounded(alarms_s / recorder_s),
+        }
+    return out
+
+
+def _recorder_cpu(site: Any, node: str, payloads: list[bytes], tmp: Path) -> float:
+    """CPU-s of the recorder's own work on `payloads` (as its writer thread does it)."""
+    session = RecordingSession(tmp / "rec", "bench", [node], site.hub.recorder, "", time.time_ns())
+    stats = StreamStats(node, STREAM, True, 40_000.0)
+    topic = topic_of(node, STREAM)
+    c0 = time.thread_time()
+    for p in payloads:
+        h = read_header(p)
+        stats.offer(h.sequence, None)
+        session.write(topic, p, h.first_sample_time_ns, time.time_ns())
+        stats.count(h.sequence, h.scan_count, h.samples, time.time_ns(), h.first_sample_time_ns,
+                    h.sample_period_ns)  # fmt: skip
+    session.close()
+    return time.thread_time() - c0
+
+
+def _alarms_cpu(site: Any, node: str, payloads: list[bytes], tmp: Path) -> tuple[float, Supervisor]:
+    """CPU-s of the supervisor's work on the same batches (as its batch thread does it)."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    sup = Supervisor(site, EventBus(), ReadModel("bench"), _NoRecorder(), BatchFeed(),  # type: ignore[arg-type]
+                     tmp / "alarms.journal")  # fmt: skip
+    sup.journal.open()
+    fed = [FedBatch(node, STREAM, read_header(p), p, 0, False) for p in payloads]
+    c0 = time.thread_time()
+    for b in fed:
+        sup._on_batch(b)
+    spent = time.thread_time() - c0
+    sup.journal.close()
+    return spent, sup
+
+
+def part2(args: argparse.Namespace, tmp: Path, log: Progress) -> dict[str, Any]:
+    import record
+
+    rec_args = argparse.Namespace(
+        seconds=args.seconds, publishers=args.publishers, compression="zstd",
+        chunk_size=1024 * 1024, rate=0.0, max_batches=5000, window_mb=64.0,
+        max_backlog_mb=2000.0, pool=16, drain_s=60.0,
+    )  # fmt: skip
+    probe = parse_config(site_yaml(1, 7447, str(tmp)), "<bench>")
+    limits = limits_from(PayloadPool(t8_stream(probe, node_name(0)), node_name(0), 600, 7), False)
+    out: dict[str, Any] = {}
+    for label, lim in (("off", None), ("on", limits)):
+        log(f"hub run with alarms {label}")
+        run_dir = tmp / f"run-{label}"
+        run_dir.mkdir()
+        hub = record.run_hub(rec_args, run_dir, log, lim)
+        mb_s = hub.recorded_while_publishing * hub.payload_bytes / 1e6 / hub.publish_s
+        out[label] = {
+            "mb_per_s": rounded(mb_s),
+            "gaps": hub.gaps,
+            "recorded": hub.recorded,
+            "hub_cpu_s": rounded(hub.hub_cpu_s),
+        }
+        log(f"alarms {label}: {mb_s:.1f} MB/s recorded, gaps {hub.gaps}")
+        shutil.rmtree(run_dir, ignore_errors=True)
+    out["ratio"] = rounded(out["on"]["mb_per_s"] / out["off"]["mb_per_s"])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--batches", type=int, default=600, help="batches of part 1 (100 ms each)")
+    ap.add_argument("--seconds", type=float, default=10.0, help="publishing time of each run")
+    ap.add_argument("--publishers", type=int, default=4, help="publisher processes")
+    ap.add_argument("--skip-throughput", action="store_true", help="part 1 only")
+    args = ap.parse_args()
+    exit_on_sigterm()
+    log = Progress("alarms")
+    tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-alarms-"))
+    try:
+        cpu = part1(args.batches, tmp, log)
+        throughput = None if args.skip_throughput else part2(args, tmp, log)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    emit(
+        {
+            "bench": "alarms",
+            **cpu,
+            "throughput": throughput,
+            "targets": {
+                "typical_share_of_recorder": TARGET_CPU_SHARE,
+                "throughput_ratio": TARGET_THROUGHPUT_RATIO,
+            },
+            "met": {
+                "cpu": cpu["typical"]["share_of_recorder"] <= TARGET_CPU_SHARE,
+                "throughput": None
+                if throughput is None
+                else throughput["ratio"] >= TARGET_THROUGHPUT_RATIO
+                and throughput["on"]["gaps"] == 0,
+            },
+        }
+    )
+
+
+if __name__ == "__main__":
+    main()
