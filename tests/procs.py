@@ -5,6 +5,7 @@ link that can be cut, and a read-only look into an edge's spool."""
 from __future__ import annotations
 
 import contextlib
+import io
 import signal
 import socket
 import struct
@@ -72,8 +73,8 @@ class Proc:
 
     def _copy_output(self) -> None:
         out = self.popen.stdout
-        assert out is not None
-        while chunk := out.read1(65536):
+        assert isinstance(out, io.BufferedReader)
+        while chunk := out.read1(65536):  # whatever is there, as soon as it is there
             self._log.write(chunk)
             self._log.flush()
 
