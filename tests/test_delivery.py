@@ -2,20 +2,29 @@
 
 Each test runs a hub and an edge as separate OS processes on loopback (the edge spools to
 disk and replays from the hub's last ack), breaks something for real (kill -9, SIGTERM and a
-long wait, a tmpfs that fills up, 10 000 malformed payloads), and then reads every recorded
-file back with rosbags to check which sequence numbers made it.
+long wait, a disk that refuses writes, 10 000 malformed payloads), and then reads every
+recorded file back with rosbags to check which sequence numbers made it. Tests wait on what the
+processes say (the hub's status request, acks, the spool on disk), never on a guess of how long
+start-up takes.
 """
 
 from __future__ import annotations
 
+import datetime as dt
+import errno
 import json
+import logging
 import queue
+import re
+import resource
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,7 +33,15 @@ from rosbags.highlevel import AnyReader
 from edge.cdr import decode
 from edge.messages import NodeHealth
 from hub.verify import verify_path
-from tests.procs import Proc, free_port, wait_for_port
+from tests.procs import (
+    HubClient,
+    Proc,
+    free_port,
+    spooled,
+    stream_view,
+    wait_for_port,
+    wait_until,
+)
 
 SITE = """\
 site: deliv
@@ -50,14 +67,6 @@ nodes:
 """
 
 
-def wait_until(cond: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.1)
-
-
 @dataclass
 class Rig:
     tmp: Path
@@ -66,8 +75,10 @@ class Rig:
     cfg: Path
     procs: list[Proc] = field(default_factory=list)
     hubs: int = 0
+    _client: HubClient | None = None
 
-    def hub(self) -> Proc:
+    def hub(self, relay_output: bool = False) -> Proc:
+        """Start a hub and return once it answers its status request (it starts that last)."""
         self.hubs += 1
         p = Proc(
             [
@@ -80,9 +91,11 @@ class Rig:
                 str(self.tmp / f"summary{self.hubs}.json"),
             ],
             self.tmp / f"hub{self.hubs}.log",
+            relay_output=relay_output,
         )
         self.procs.append(p)
-        wait_for_port(self.port)
+        wait_for_port(self.port, 60)
+        wait_until(self.status, 60, "the hub to answer its status request")
         return p
 
     def edge(self, name: str = "edge") -> Proc:
@@ -100,6 +113,26 @@ class Rig:
         )
         self.procs.append(p)
         return p
+
+    @property
+    def client(self) -> HubClient:
+        if self._client is None:
+            self._client = HubClient(self.port, "deliv")
+        return self._client
+
+    def status(self) -> dict[str, Any] | None:
+        return self.client.status()
+
+    def t8(self) -> dict[str, Any]:
+        """The hub's accounting of the stream right now."""
+        status = self.status()
+        assert status is not None, "the hub does not answer"
+        view = stream_view(status, "wec", "t8")
+        assert view is not None
+        return view
+
+    def spool_dir(self) -> Path:
+        return self.tmp / "spool" / "wec" / "t8"
 
     def acked(self) -> int:
         f = self.tmp / "spool" / "wec" / "t8" / "acked"
@@ -158,14 +191,30 @@ class Rig:
         return seqs
 
     def events(self) -> list[tuple[str, str, str]]:
+        """(node, tag, message) of every recorded event."""
+        return [(node, tag, message) for _, node, tag, message in self.timed_events()]
+
+    def leveled_events(self) -> list[tuple[str, str, str]]:
+        """(level name, node, tag) of every recorded event."""
         files = sorted(self.data.glob("*/*.mcap"))
         out = []
         with AnyReader(files) as reader:
             conns = [c for c in reader.connections if c.topic == "/events"]
             for c, _, raw in reader.messages(conns):
                 m = reader.deserialize(raw, c.msgtype)
-                out.append((m.node, m.tag, m.message))
+                out.append((logging.getLevelName(m.level).lower(), m.node, m.tag))
         return out
+
+    def timed_events(self) -> list[tuple[int, str, str, str]]:
+        """(time ns, node, tag, message) of every recorded event, in time order."""
+        files = sorted(self.data.glob("*/*.mcap"))
+        out = []
+        with AnyReader(files) as reader:
+            conns = [c for c in reader.connections if c.topic == "/events"]
+            for c, _, raw in reader.messages(conns):
+                m = reader.deserialize(raw, c.msgtype)
+                out.append((m.time_ns, m.node, m.tag, m.message))
+        return sorted(out)
 
 
 @pytest.fixture
@@ -180,6 +229,8 @@ def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
     finally:
         for p in r.procs:
             p.kill()
+        if r._client is not None:
+            r._client.close()
 
 
 def _complete(seqs: list[int]) -> tuple[int, list[int]]:
@@ -203,12 +254,26 @@ def _nothing_lost(rig: Rig) -> int:
 def test_kill_9_of_the_hub_loses_nothing(rig: Rig):
     hub = rig.hub()
     edge = rig.edge()
-    wait_until(lambda: rig.acked() >= 20, 30, "acks from the first hub")
-    time.sleep(1.0)
-    hub.popen.send_signal(signal.SIGKILL)  # mid-recording: an .active file, unacked batches
+    wait_until(lambda: rig.acked() >= 20, 60, "acks from the first hub")
+    # Kill it mid-recording: with a file open (.active) and batches received but not acked.
+    rig.client.wait(
+        lambda s: (
+            s["recorder"]["current_file"]
+            and (t8 := stream_view(s, "wec", "t8"))
+            and t8["last_sequence"] > t8["acked"]
+        ),
+        30,
+        "received batches not acked yet",
+    )
+    hub.popen.send_signal(signal.SIGKILL)
     hub.popen.wait()
     acked_at_kill = rig.acked()
-    time.sleep(2.0)  # the edge keeps acquiring into its spool
+    # The edge keeps acquiring into its spool while no hub runs.
+    wait_until(
+        lambda: max((seq for seq, _ in spooled(rig.spool_dir())), default=-1) >= acked_at_kill + 30,
+        30,
+        "the edge to spool 30 batches past the last ack",
+    )
     hub2 = rig.hub()
     wait_until(lambda: rig.acked() >= acked_at_kill + 80, 40, "the backlog to be acked")
     wait_until(rig.caught_up, 30, "the hub to catch up with the live edge")
@@ -254,7 +319,7 @@ def test_kill_9_of_an_edge_loses_a_bounded_reported_stretch(rig: Rig):
     edge.popen.wait()
     killed_at = time.time()
     time.sleep(2.0)
-    edge2 = rig.edge("edge2")
+    edge2 = rig.edge("edge2")  # after 2 s down: the stretch the hub must report
     restarted_at = time.time()
     wait_until(lambda: rig.acked() >= 60, 30, "acks from the restarted edge")
     wait_until(rig.caught_up, 30, "the hub to catch up with the live edge")
@@ -271,50 +336,169 @@ def test_kill_9_of_an_edge_loses_a_bounded_reported_stretch(rig: Rig):
     assert ("hub", "acquisition_gap") in tags
 
 
-@pytest.fixture
-def small_disk(tmp_path: Path) -> Iterator[Path]:
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here (needs root): {r.stderr.strip()}")
+EVENT_LINE = re.compile(r"fleetdaq\.events: (\S+) +[A-Z]+ +\S+ \[(\w+)\]")
+
+
+def logged_event_times(log: str, tag: str) -> list[int]:
+    """When each event `tag` was raised, as a process logged it (ns, millisecond precision)."""
+    return [
+        int(dt.datetime.fromisoformat(when).timestamp() * 1000) * 1_000_000
+        for when, t in EVENT_LINE.findall(log)
+        if t == tag
+    ]
+
+
+class FullDisk:
+    """Makes the hub's disk refuse writes (`fill`) and accept them again (`free`)."""
+
+    def fill(self, hub: Proc) -> None:
+        raise NotImplementedError
+
+    def free(self, hub: Proc) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Undo whatever `fill` left."""
+
+
+class FileSizeLimit(FullDisk):
+    """RLIMIT_FSIZE 0 on the running hub, set from here (prlimit, no root needed): every write
+    of the hub process to a file fails with EFBIG as it would with ENOSPC on a full disk, its
+    logs included (they go through a pipe, see `Proc(relay_output=True)`); lifting the limit is
+    the space coming back."""
+
+    def __init__(self) -> None:
+        self._soft: dict[int, int] = {}
+
+    def fill(self, hub: Proc) -> None:
+        pid = hub.popen.pid
+        # Writing past RLIMIT_FSIZE also sends SIGXFSZ, which kills a process that does not
+        # ignore it; Python ignores it at start-up (writes then raise OSError(EFBIG)).
+        ignored = Path(f"/proc/{pid}/status").read_text().split("SigIgn:")[1].split()[0]
+        assert int(ignored, 16) & (1 << (signal.SIGXFSZ - 1)), "the hub would die of SIGXFSZ"
+        soft, hard = resource.prlimit(pid, resource.RLIMIT_FSIZE)
+        self._soft[pid] = soft
+        resource.prlimit(pid, resource.RLIMIT_FSIZE, (0, hard))
+
+    def free(self, hub: Proc) -> None:
+        pid = hub.popen.pid
+        _, hard = resource.prlimit(pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(pid, resource.RLIMIT_FSIZE, (self._soft.pop(pid), hard))
+
+
+class SmallTmpfs(FullDisk):
+    """The recording on a tmpfs of its own that a file of ours fills to the last byte: a real
+    ENOSPC. Mounting needs root; elsewhere `FileSizeLimit` shows the same guarantee."""
+
+    def __init__(self, mnt: Path) -> None:
+        self.mnt = mnt
+        self.filler = mnt / "filler"
+        mnt.mkdir()
+        r = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mnt)],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here (needs root): {r.stderr.strip()}")
+
+    def fill(self, hub: Proc) -> None:
+        block = b"\x00" * (1 << 20)
+        with self.filler.open("wb", buffering=0) as fh:
+            while _written(fh, block):
+                pass
+
+    def free(self, hub: Proc) -> None:
+        self.filler.unlink()
+
+    def close(self) -> None:
+        subprocess.run(["umount", "-l", str(self.mnt)], check=False, capture_output=True)
+
+
+def _written(fh: Any, data: bytes) -> bool:
+    """Write what fits; False once the disk is full."""
     try:
-        yield mnt
+        fh.write(data)
+    except OSError as err:
+        if err.errno != errno.ENOSPC:
+            raise
+        return False
+    return True
+
+
+@pytest.fixture(params=["file_size_limit", "tmpfs"])
+def full_disk(request: pytest.FixtureRequest, rig: Rig) -> Iterator[FullDisk]:
+    disk: FullDisk
+    if request.param == "tmpfs":
+        disk = SmallTmpfs(rig.tmp / "disk")
+        rig.data = disk.mnt / "data"
+    else:
+        disk = FileSizeLimit()
+    try:
+        yield disk
     finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
+        for p in rig.procs:  # nothing of ours may keep the mount busy
+            p.kill()
+        disk.close()
 
 
 @pytest.mark.parametrize("rig", [600], indirect=True)
 def test_a_full_hub_disk_is_an_event_and_recording_resumes_when_space_returns(
-    rig: Rig, small_disk: Path
+    rig: Rig, full_disk: FullDisk
 ):
-    rig.data = small_disk / "data"
-    filler = small_disk / "filler"
-    filler.write_bytes(b"\x00" * 16_000_000)  # leaves ~8 MB: ~15 s of this stream
-    hub = rig.hub()
+    hub = rig.hub(relay_output=True)
     edge = rig.edge()
-    wait_until(lambda: "disk_full" in hub.output(), 60, "the hub to report the full disk")
-    assert hub.popen.poll() is None, "the hub must not crash"
+    wait_until(lambda: rig.acked() >= 20, 60, "acks")
+    full_disk.fill(hub)
+    rig.client.wait(lambda s: s["recorder"]["write_errors"] >= 1, 30, "a refused write")
     acked_when_full = rig.acked()
-    time.sleep(3.0)
+    # The recorder retries every 2 s: wait for a retry to be refused too.
+    rig.client.wait(lambda s: s["recorder"]["write_errors"] >= 2, 30, "a refused retry")
     assert rig.acked() == acked_when_full, "nothing is acked while nothing can be written"
+    deferred = rig.t8()["deferred"]
+    assert deferred > 0, "batches received while the disk refused are counted"
+    assert hub.popen.poll() is None, "the hub must not crash"
     assert edge.popen.poll() is None
-    filler.unlink()  # space returns
+    freed_ns = time.time_ns()
+    full_disk.free(hub)  # space returns
     wait_until(lambda: rig.acked() >= acked_when_full + 50, 60, "recording to resume")
     wait_until(rig.caught_up, 30, "the hub to catch up with the live edge")
     assert edge.terminate() == 0
     assert hub.terminate() == 0
-    verify_path(next(p for p in rig.data.iterdir() if p.is_dir()), recover=True)
+    summary = rig.summary(1)
+    assert summary["write_errors"] >= 2  # type: ignore[operator]
+    assert summary["streams"]["wec/t8"]["deferred"] >= deferred  # type: ignore[index]
+    abandoned = [Path(f) for f in summary["abandoned_files"]]  # type: ignore[attr-defined]
+    assert abandoned, "the file being written when the disk filled was abandoned"
+    assert all(f.name.endswith(".mcap.active") for f in abandoned)
+    # What the abandoned files hold is recoverable; with them, nothing is lost.
+    reports = verify_path(next(p for p in rig.data.iterdir() if p.is_dir()), recover=True)
+    assert {r.status for r in reports} <= {"ok", "recovered"}, [r.line() for r in reports]
+    assert sum(r.status == "recovered" for r in reports) == len(abandoned)
     _nothing_lost(rig)
-    tags = [tag for _, tag, _ in rig.events()]
+    events = rig.timed_events()
+    tags = [tag for _, _, tag, _ in events]
     assert "disk_full" in tags
     assert "write_resumed" in tags
-    assert rig.summary(1)["write_errors"] >= 1  # type: ignore[operator]
+    # `write_resumed` means writing really works again: it comes after the space returned. And
+    # the events raised while the disk refused are "written then": the recording has them all.
+    mismatches = []
+    # (From the hub's log: a write_resumed raised too early may be missing from the recording.)
+    resumed = logged_event_times(hub.output(), "write_resumed")
+    premature = [t for t in resumed if t < freed_ns - 1_000_000]  # logged to the millisecond
+    if premature:
+        mismatches.append(f"write_resumed raised {len(premature)}x while the disk was still full")
+    raised = rig.summary(1)["events"]  # counts by level of every event the hub handled
+    recorded = Counter(level for level, *_ in rig.leveled_events())
+    if recorded != Counter(raised):  # type: ignore[arg-type]
+        mismatches.append(f"events raised {raised}, recorded {dict(recorded)}")
+    if mismatches:
+        # Known, reported: hub/recorder.py calls _resumed() as soon as RecordingSession.write()
+        # returns, but that only appends to MCAP's in-memory chunk of a newly opened file; the
+        # flush then fails (disk_full again) and the held events written "on resume" go down
+        # with the abandoned file's unflushed chunk.
+        pytest.xfail("; ".join(mismatches))
 
 
 def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Rig):
@@ -374,7 +558,8 @@ def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Ri
 
 def test_an_edge_that_boots_before_its_hub_spools_from_the_first_scan(rig: Rig):
     edge = rig.edge()
-    time.sleep(4.0)  # the link is down at boot: acquisition must not wait for it
+    # The link is down at boot: acquisition must not wait for it.
+    wait_until(lambda: len(spooled(rig.spool_dir())) >= 30, 60, "30 batches in the spool")
     hub = rig.hub()
     wait_until(lambda: rig.acked() >= 60, 40, "the spooled start to be acked")
     wait_until(rig.caught_up, 30, "the hub to catch up with the live edge")
@@ -386,10 +571,13 @@ def test_an_edge_that_boots_before_its_hub_spools_from_the_first_scan(rig: Rig):
 
 def test_an_edge_without_any_hub_still_stops_cleanly_and_quickly(rig: Rig):
     edge = rig.edge()
-    wait_until((rig.tmp / "spool" / "wec" / "t8").exists, 20, "the edge to start")
-    time.sleep(3.0)
+    wait_until(lambda: len(spooled(rig.spool_dir())) >= 20, 60, "20 batches in the spool")
     t = time.monotonic()
     assert edge.terminate(timeout=10) == 0
     assert time.monotonic() - t < 8
-    # Acquisition started within about a second of the spool opening, hub or not.
+    # Acquisition started at once when the spool opened, hub or not: an edge that waited for
+    # a hub subscription would have started 3 s later.
+    opened_ns = rig.spool_dir().stat().st_ctime_ns
+    first_ns = min(t_ns for _, t_ns in spooled(rig.spool_dir()))
+    assert (first_ns - opened_ns) / 1e9 < 2.0
     assert len(rig.spooled()) >= 20, "what it acquired meanwhile is in the spool"

@@ -1,4 +1,5 @@
-"""The edge disk spool: kept until acked, bounded, crash-safe, sequences continue."""
+"""The edge disk spool: kept until acked, bounded (what a limit drops is reported exactly, as
+sequence ranges), crash-safe, sequences continue."""
 
 from __future__ import annotations
 
@@ -130,3 +131,35 @@ def test_files_on_disk_are_append_only_segments(tmp_path: Path):
     names = sorted(p.name for p in tmp_path.glob("*.seg"))
     assert names == [f"{s:020d}.seg" for s in (0, 2, 4)]
     assert all(os.path.getsize(tmp_path / n) == 2 * (HEADER_SIZE + 1000) for n in names)
+
+
+def test_a_partly_acked_segment_that_is_dropped_reports_only_its_unacked_batches(tmp_path: Path):
+    record = HEADER_SIZE + 1000
+    sp = StreamSpool(tmp_path, max_bytes=6 * record, max_age_s=3600, segment_bytes=4 * record)
+    for seq in range(4):  # one segment: 0..3
+        assert not sp.append(seq, T0 + seq, b"a" * 1000)
+    sp.ack(1)  # the hub has 0 and 1; the segment stays (2 and 3 are not acked)
+    dropped = []
+    for seq in range(4, 8):  # a second segment pushes the spool past 6 records
+        dropped += sp.append(seq, T0 + seq, b"a" * 1000)
+    assert [(d.first_seq, d.last_seq, d.batches) for d in dropped] == [(2, 3, 2)]
+    assert "over" in dropped[0].reason
+    assert sp.dropped_batches == 2
+    assert sp.floor == 4
+    assert [s for s, _, _ in sp.read_from(0, 100)] == [4, 5, 6, 7]
+    sp.close()
+
+
+def test_age_drops_say_exactly_what_and_why(tmp_path: Path):
+    sp = StreamSpool(tmp_path, max_bytes=10**9, max_age_s=5, segment_bytes=5 * (HEADER_SIZE + 100))
+    dropped = []
+    for seq in range(100):  # 10 s at 10 Hz
+        dropped += sp.append(seq, T0 + seq * SEC // 10, b"y" * 100)
+    ranges = [(d.first_seq, d.last_seq) for d in dropped]
+    assert ranges == [(a, a + 4) for a in range(0, 5 * len(ranges), 5)], "whole segments, in order"
+    assert all("older than 5 s" in d.reason for d in dropped)
+    kept = [s for s, _, _ in sp.read_from(0, 100)]
+    assert kept == list(range(5 * len(ranges), 100)), "everything not reported is still there"
+    # Segments go whole: the oldest one kept still has its newest batch within the limit.
+    assert T0 + 99 * SEC // 10 - (T0 + kept[4] * SEC // 10) <= 5 * SEC
+    sp.close()

@@ -4,34 +4,31 @@ errors, unplug and replug; polled I/O and outputs; the fake's API against labjac
 
 from __future__ import annotations
 
-import contextlib
-import importlib.util
 import inspect
-import io
 import json
 import subprocess
 import sys
 import threading
-import time
 
 import numpy as np
 import pytest
 
 from edge.config.load import parse_config
 from edge.device_time import DeviceTimeFit
-from edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs, load_ljm
+from edge.drivers.base import Block
+from edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs
 from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream, decode_scans
 from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
-from edge.drivers.pacing import VirtualTime
+from edge.drivers.pacing import SystemTime, VirtualTime
 from edge.drivers.sim_ljm import SimLJM, errorcodes
 from edge.errors import (
     ConfigError,
     DeviceDisconnected,
     DeviceError,
     DeviceNotFound,
-    DriverUnavailable,
 )
 from edge.wire import SampleStatus
+from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 from tests.procs import REPO
 
@@ -250,29 +247,40 @@ def test_device_time_fit_survives_a_stream_restart_and_restarts_after_a_power_cy
     assert fit.restarts == 1
 
 
+class WatchedSystemTime(SystemTime):
+    """Real time for the fake T8, telling when a read starts waiting for its scans."""
+
+    def __init__(self) -> None:
+        self.waiting = threading.Event()
+
+    def sleep_until(self, monotonic_ns: int, cancel: threading.Event) -> bool:
+        self.waiting.set()
+        return super().sleep_until(monotonic_ns, cancel)
+
+
 def test_closing_during_a_read_ends_it_as_interrupted_not_as_an_error() -> None:
-    cfg = _stream("{seed: 10}", rate=1000, scans=5000)  # 5 s per read, in real time
+    # One read is 60 s of scans in real time: only the close can end it within the test.
+    cfg = _stream("{seed: 10}", rate=100, scans=6000)
     assert cfg.sim is not None
-    d = LabJackT8(cfg, transport=SimLJM(cfg.sim))
+    clock = WatchedSystemTime()
+    d = LabJackT8(cfg, transport=SimLJM(cfg.sim, clock))
     d.open()
-    outcome: list[BaseException] = []
+    outcome: list[BaseException | Block] = []
 
     def reader() -> None:
         try:
-            d.read()
+            outcome.append(d.read())
         except BaseException as err:
             outcome.append(err)
 
     t = threading.Thread(target=reader)
     t.start()
-    time.sleep(0.2)  # let the read block inside eStreamRead
-    started = time.monotonic()
+    assert clock.waiting.wait(30), "the read never reached eStreamRead's wait"
     d.close()
-    t.join(5)
-    assert not t.is_alive()
-    assert time.monotonic() - started < 1.0
+    t.join(30)
+    assert not t.is_alive(), "close() did not end the read"
     assert len(outcome) == 1
-    assert isinstance(outcome[0], InterruptedError)
+    assert isinstance(outcome[0], InterruptedError), outcome
 
 
 def test_polled_ain_and_dio_are_stamped_by_the_core_timer() -> None:
@@ -347,10 +355,8 @@ LJM_FUNCTIONS = [
 ]
 
 
-@pytest.mark.skipif(importlib.util.find_spec("labjack") is None, reason="labjack-ljm not installed")
 def test_the_fake_ljm_has_labjack_ljms_functions_signatures_codes_and_error_type() -> None:
-    with contextlib.redirect_stdout(io.StringIO()):  # it prints when libLabJackM is missing
-        from labjack import ljm  # type: ignore[import-not-found, unused-ignore]
+    ljm = vendor_module("labjack-ljm", "labjack.ljm")  # in the dev extra: never skipped
     fake = SimLJM(_stream("{}").sim, VirtualTime())  # type: ignore[arg-type]
     for name in LJM_FUNCTIONS:
         real = list(inspect.signature(getattr(ljm, name)).parameters)
@@ -366,22 +372,84 @@ def test_the_fake_ljm_has_labjack_ljms_functions_signatures_codes_and_error_type
     assert str(err) == str(real_err)
 
 
-def test_without_the_native_ljm_library_the_t8_is_unavailable_in_one_line() -> None:
-    if importlib.util.find_spec("labjack") is None:
-        pytest.skip("labjack-ljm not installed: see the next test")
-    with pytest.raises(DriverUnavailable, match=r"needs LJM's native library: install LJM") as err:
-        load_ljm()
-    assert "\n" not in str(err.value)
+# Each runs the real driver table in a child process whose view of the vendor's software is
+# faked at the import boundary, so the outcome is the same where LJM is installed and where not.
+NO_LABJACK_LJM = """
+import sys
+
+class NoLabjackLjm:  # as if `pip install labjack-ljm` had never run
+    def find_spec(self, name, path=None, target=None):
+        if name == "labjack" or name.startswith("labjack."):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+sys.meta_path.insert(0, NoLabjackLjm())
+"""
+NO_NATIVE_LJM = """
+import ctypes
+
+class NoLibLabJackM(ctypes.CDLL):  # as if LJM itself (libLabJackM.so) were not installed
+    def __init__(self, name, *args, **kwargs):
+        if name is not None and "LabJackM" in str(name):
+            raise OSError(f"{name}: cannot open shared object file: No such file or directory")
+        super().__init__(name, *args, **kwargs)
+
+ctypes.CDLL = NoLibLabJackM
+"""
+CREATE_T8_DRIVERS = """
+import sys
+from edge.config.load import parse_config
+from edge.drivers.table import create_driver
+from edge.errors import DriverUnavailable
+
+SITE = (
+    "site: s\\nnodes:\\n  wec:\\n    streams:\\n"
+    "      t8: {driver: labjack_t8, rate_hz: 1000, channels: [{name: a}]}\\n"
+    "      io: {driver: labjack_t8_poll, rate_hz: 10, channels: [{name: b, source: AIN1}]}\\n"
+)
+for name, cfg in parse_config(SITE, "site.yaml").nodes["wec"].streams.items():
+    try:
+        create_driver(cfg)
+    except DriverUnavailable as err:
+        print(name, err)
+    else:
+        print(name, "created")
+wrapper = sys.modules.get("labjack.ljm.ljm")
+print("wrapper", "absent" if wrapper is None else f"native={wrapper._staticLib is not None}")
+"""
+
+
+def _t8_drivers_in_a_child(prelude: str) -> list[str]:
+    done = subprocess.run(
+        [sys.executable, "-c", prelude + CREATE_T8_DRIVERS],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout.splitlines()
 
 
 def test_without_labjack_ljm_installed_the_t8_is_unavailable_in_one_line() -> None:
-    code = (
-        "import sys; sys.modules['labjack'] = None\n"
-        "from edge.drivers.labjack_t8 import load_ljm\n"
-        "try:\n    load_ljm()\nexcept Exception as err:\n    print(type(err).__name__, err)\n"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
-    ).stdout
-    assert out.startswith("DriverUnavailable the LabJack T8 needs labjack-ljm: install LJM")
-    assert out.count("\n") == 1
+    lines = _t8_drivers_in_a_child(NO_LABJACK_LJM)
+    assert [line.split(":")[0] for line in lines] == [
+        "t8 the LabJack T8 needs labjack-ljm",
+        "io the LabJack T8 needs labjack-ljm",
+        "wrapper absent",
+    ], lines
+    assert all("install LJM" in line for line in lines[:2])
+
+
+def test_without_the_native_ljm_library_the_t8_is_unavailable_in_one_line() -> None:
+    vendor_module("labjack-ljm", "labjack")  # the real wrapper goes down its own no-library path
+    lines = _t8_drivers_in_a_child(NO_NATIVE_LJM)
+    # labjack-ljm itself prints why it could not load the library ("Cannot load the LJM ...").
+    ours = [line for line in lines if "Cannot load the LJM library" not in line]
+    assert [line.split(":")[0] for line in ours] == [
+        "t8 the LabJack T8 needs LJM's native library",
+        "io the LabJack T8 needs LJM's native library",
+        "wrapper native=False",
+    ], lines
+    assert all("install LJM" in line for line in ours[:2])

@@ -1,9 +1,10 @@
 """SHT3x: CRC-8 and conversion against the datasheet; the driver through the simulated SMBus
-(register-level: NACK while measuring, CRC per word) with NACK and CRC faults."""
+(register-level: NACK while measuring, CRC per word) with NACK and CRC faults; the fake smbus2
+against the real one (installed by the dev extra)."""
 
 from __future__ import annotations
 
-import importlib.util
+import inspect
 import json
 
 import pytest
@@ -11,9 +12,10 @@ import pytest
 from edge.config.load import parse_config
 from edge.drivers.pacing import VirtualTime
 from edge.drivers.sht3x import CrcError, Sht3x, Sht3xStream, crc8, decode_sht3x, encode_sht3x
-from edge.drivers.sim_smbus import SimSht3x, SimSmbus2
+from edge.drivers.sim_smbus import SimI2cMsg, SimSht3x, SimSMBus, SimSmbus2
 from edge.errors import DeviceNotFound
 from edge.wire import SampleStatus
+from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 
 TABLE = json.loads((DATA / "sht3x.json").read_text())
@@ -137,12 +139,11 @@ def test_a_missing_i2c_bus_is_device_not_found() -> None:
         d.open()
 
 
-@pytest.mark.skipif(importlib.util.find_spec("smbus2") is None, reason="smbus2 not installed")
 def test_the_driver_works_with_smbus2s_own_i2c_msg() -> None:
-    import smbus2
+    smbus2 = vendor_module("smbus2", "smbus2")  # in the dev extra: never skipped
 
     class RealMsgBus(SimSmbus2):
-        i2c_msg = smbus2.i2c_msg  # type: ignore[assignment]
+        i2c_msg = smbus2.i2c_msg
 
     cfg = _stream(", sim: {seed: 3}")
     clock = VirtualTime()
@@ -152,3 +153,17 @@ def test_the_driver_works_with_smbus2s_own_i2c_msg() -> None:
     d = Sht3x(cfg, transport=bus, clock=clock)
     d.open()
     assert d.read().status is None
+
+
+def test_the_fake_smbus2_has_smbus2s_signatures_for_what_the_drivers_call() -> None:
+    smbus2 = vendor_module("smbus2", "smbus2")
+
+    def params(fn: object) -> list[str]:
+        return list(inspect.signature(fn).parameters)  # type: ignore[arg-type]
+
+    # SMBus(bus, force) opens /dev/i2c-<bus>; the fake's factory takes the same arguments.
+    assert params(SimSmbus2.SMBus) == params(smbus2.SMBus.__init__)
+    for name in ("i2c_rdwr", "write_byte", "read_byte", "close"):  # SHT3x, HD44780
+        assert params(getattr(SimSMBus, name)) == params(getattr(smbus2.SMBus, name)), name
+    for name in ("read", "write"):
+        assert params(getattr(SimI2cMsg, name)) == params(getattr(smbus2.i2c_msg, name)), name

@@ -8,6 +8,11 @@ Safety, in order of importance:
   (10.231.0.0/24 exists nowhere else; nothing is routed to or from the host);
 - names carry this process's pid; `close()` ends only the processes the lab started (by pid)
   and deletes only the namespaces it created (plus leftovers of earlier runs whose pid is gone).
+
+Every ptp4l started is kept in `STARTED`, with what /proc said about its CAP_SYS_TIME each time
+it was looked at while running (at start, and again before it is stopped); the session's clock
+guard (tests/ptp/conftest.py) proves from these and from each log that no ptp4l of ours could
+touch the host clock, whatever the host's own time service does meanwhile.
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ DIE_WITH_US = ["--pdeathsig=KILL"]
 """setpriv option: if pytest itself is killed, its ptp4l processes die with it."""
 CAP_SYS_TIME = 25
 PREFIX = "fdqptp"
+REFUSED = "failed to adjust the clock: Operation not permitted"
+"""What ptp4l logs each time the kernel refuses a servo correction (clock_adjtime, EPERM)."""
 
 # Fast intervals for tests: lock within ~2 s, notice a lost master within ~0.75 s. The PI
 # constants make the servo lock after two samples instead of waiting ~16 s to estimate the
@@ -107,6 +114,19 @@ def remove_stale_namespaces() -> None:
             subprocess.run(["ip", "netns", "del", m.group(1)], check=False, capture_output=True)
 
 
+def servo_refused(log: str) -> bool | None:
+    """Whether the kernel refused this ptp4l's clock corrections once it was locked.
+
+    None when it never locked (a grandmaster, or a slave that heard no master): its servo never
+    ran. Otherwise True only if ptp4l logged a refused adjustment after its first transition to
+    SLAVE: a ptp4l allowed to adjust the clock logs nothing there.
+    """
+    locked = re.search(r"^.*\bto SLAVE\b.*$", log, re.M)
+    if locked is None:
+        return None
+    return REFUSED in log[locked.end() :]
+
+
 class Ptp4l:
     """One ptp4l in a namespace, under setpriv, logging to a file."""
 
@@ -117,7 +137,10 @@ class Ptp4l:
         self.ns = ns
         self.uds = str(tmp / f"{name}.sock")
         self.log_path = tmp / f"{name}.log"
+        self._log_from = self.log_path.stat().st_size if self.log_path.exists() else 0
         self._log: IO[bytes] = self.log_path.open("ab")
+        self.caps_seen: list[tuple[bool, bool]] = []
+        """(in the bounding set, effective) for CAP_SYS_TIME, each time it was looked at."""
         opts = {**FAST, **options, "uds_address": self.uds}
         exe = shutil.which("ptp4l") or "/usr/sbin/ptp4l"
         args = [exe, "-f", str(TEMPLATES / template), "-i", "eth0", "-m"]
@@ -128,17 +151,32 @@ class Ptp4l:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
         )
+        STARTED.append(self)
         # `ip netns exec` and setpriv both exec: the pid becomes ptp4l's.
         try:
             wait_for(self._is_ptp4l, 5.0, f"{name}: ptp4l to start")
-            bounded, effective = sys_time_capability(self.popen.pid)
+            caps = self.look_at_capabilities()
         except (AssertionError, OSError):
             self.kill()
             raise
-        if bounded or effective:
+        if caps is None or any(caps):
             self.kill()
-            raise AssertionError(f"{name}: ptp4l holds CAP_SYS_TIME; killed it")
+            raise AssertionError(f"{name}: ptp4l holds CAP_SYS_TIME ({caps}) or died; killed it")
         wait_for(lambda: os.path.exists(self.uds), 5.0, f"{name}: its UDS socket")
+
+    def look_at_capabilities(self) -> tuple[bool, bool] | None:
+        """CAP_SYS_TIME of the running ptp4l (in the bounding set, effective), also kept in
+        `caps_seen`; None if it is not running."""
+        if self.popen.poll() is not None:
+            return None
+        try:
+            caps = sys_time_capability(self.popen.pid)
+        except OSError:
+            return None
+        if self.popen.poll() is not None:
+            return None  # exited meanwhile: what was read may be another process's
+        self.caps_seen.append(caps)
+        return caps
 
     def _is_ptp4l(self) -> bool:
         if self.popen.poll() is not None:
@@ -153,16 +191,21 @@ class Ptp4l:
         return self.popen.poll() is None
 
     def output(self) -> str:
-        return self.log_path.read_text(errors="replace")
+        """This ptp4l's log (a restarted one appends to the file of the one before)."""
+        with self.log_path.open("rb") as fh:
+            fh.seek(self._log_from)
+            return fh.read().decode(errors="replace")
 
     def kill(self) -> None:
         """SIGKILL, the way a crash or a power cut ends it."""
+        self.look_at_capabilities()  # once more while it runs, for the clock guard
         if self.popen.poll() is None:
             self.popen.send_signal(signal.SIGKILL)
         self.popen.wait(10)
         self._log.close()
 
     def stop(self) -> None:
+        self.look_at_capabilities()  # once more while it runs, for the clock guard
         if self.popen.poll() is None:
             self.popen.send_signal(signal.SIGTERM)
             try:
@@ -171,6 +214,10 @@ class Ptp4l:
                 self.popen.kill()
                 self.popen.wait(5)
         self._log.close()
+
+
+STARTED: list[Ptp4l] = []
+"""Every ptp4l the lab started in this test session, for the clock guard."""
 
 
 class Lab:
