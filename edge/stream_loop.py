@@ -206,7 +206,12 @@ class StreamLoop:
                     self.name,
                     "spool_full",
                     f"{d.reason}: dropped {d.batches} unacked batch(es), sequences "
-                    f"{d.first_seq}..{d.last_seq} — the hub never received them",
+                    f"{d.first_seq}..{d.last_seq}; the hub had not acked them (those it never "
+                    "received are lost)",
+                    first=d.first_seq,
+                    last=d.last_seq,
+                    batches=d.batches,
+                    reason=d.reason,
                 )
             pub = self._pub
             if pub is not None:

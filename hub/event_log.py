@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import logging.handlers
+import sys
 from collections import deque
 from pathlib import Path
 
@@ -21,6 +22,21 @@ def format_event(e: Event) -> str:
     when = dt.datetime.fromtimestamp(e.time_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds")
     tag = f" [{e.tag}]" if e.tag else ""
     return f"{when} {e.level_name.upper():8} {e.node}/{e.source}{tag}: {e.message}"
+
+
+class _QuietRotatingFile(logging.handlers.RotatingFileHandler):
+    """A size-limited file that counts write failures (a full disk) instead of printing a
+    traceback for every event."""
+
+    write_failures = 0
+    last_error = ""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        self.write_failures += 1
+        self.last_error = str(sys.exc_info()[1])
+        n = self.write_failures
+        if n == 1 or n % 1000 == 0:
+            log.error("events.log cannot be written: %s (%d so far)", self.last_error, n)
 
 
 class EventLog:
@@ -41,12 +57,12 @@ class EventLog:
         self.model = model
         self.recent: deque[Event] = deque(maxlen=tail)
         self.counts: dict[str, int] = {}
-        self._file: logging.handlers.RotatingFileHandler | None = None
+        self._file: _QuietRotatingFile | None = None
         self._sub = bus.subscribe(self.name, self._on_event)
 
     def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = logging.handlers.RotatingFileHandler(
+        self._file = _QuietRotatingFile(
             self.path, maxBytes=self.max_bytes, backupCount=self.backups, encoding="utf-8"
         )
         self._file.setFormatter(logging.Formatter("%(message)s"))

@@ -47,7 +47,8 @@ from hub.stream_stats import StreamStats
 log = logging.getLogger("fleetdaq.recorder")
 
 _STOP = object()
-_DATA, _EVENT, _MESSAGE = 0, 1, 2
+_DATA, _EVENT, _MESSAGE, _DROPS = 0, 1, 2, 3
+_MAX_SEQUENCE = 2**63 - 1
 _RETRY_AFTER_ERROR_S = 2.0
 _MAX_HELD_EVENTS = 10_000
 _VIEW_INTERVAL_S = 0.25
@@ -102,7 +103,12 @@ class Recorder:
         self._stopped = False
         self._died: str | None = None
         self._broken_until = 0.0
-        self._held_events: list[tuple[bytes, int, int]] = []
+        self._failure_reported = False
+        self._held: list[tuple[str, bytes, int, int, str]] = []
+        self._unflushed: list[tuple[str, bytes, int, int, str]] = []
+        """Events and messages written since the last successful flush: if the file they went
+        into is abandoned, they are held again (data batches roll back and the edges resend)."""
+        """Events and messages waiting for the disk to take writes again (bounded)."""
         self._last_flush = time.monotonic()
         self._last_view = 0.0
         self._implausible_reported: dict[tuple[str, str], float] = {}
@@ -176,8 +182,17 @@ class Recorder:
         self._queue.put((_MESSAGE, topic, payload, publish_ns, recv_ns, msgtype))
 
     def _on_event(self, e: Event) -> None:
-        """A bus subscriber: the event goes to the writer thread's queue."""
+        """A bus subscriber: the event goes to the writer thread's queue (and an edge's report
+        of the batches its full spool dropped goes to the stream's accounting)."""
         self._queue.put((_EVENT, encode(e), e.time_ns, time.time_ns()))
+        if e.tag == "spool_full":
+            st = self.streams.get((e.node, e.source))
+            try:
+                first, last = int(e.get("first") or ""), int(e.get("last") or "")
+            except ValueError:
+                return
+            if st is not None and 0 <= first <= last <= _MAX_SEQUENCE:
+                self._queue.put((_DROPS, st, first, last))
 
     def stop(self) -> None:
         """Stop receiving, write everything received, close the files. Idempotent."""
@@ -253,6 +268,8 @@ class Recorder:
                 self._record(st, payload, recv_ns, floor)
             elif kind == _EVENT:
                 self._record_event(*item[1:])
+            elif kind == _DROPS:
+                self._dropped_by_edge(*item[1:])
             else:
                 self._record_message(*item[1:])
         except Exception as err:  # no single message may stop the writer
@@ -261,13 +278,18 @@ class Recorder:
     def _unexpected(self, err: Exception) -> None:
         """Something a message did that was not foreseen: the open file may hold half a
         record now, so it is abandoned (as after a write error) and the streams roll back to
-        their last ack; the edges send the rest again."""
+        their last ack; the edges send the rest again. Events and messages written since the
+        last flush wait for the next one."""
         self.writer_errors += 1
         log.error("recorder: unexpected error handling a message", exc_info=True)
         assert self.session is not None
         abandoned = self.session.abandon()
         for st in self.streams.values():
             st.rollback()
+        lost_with_file, self._unflushed = self._unflushed, []
+        self._held[:0] = lost_with_file
+        if not self._recovering():
+            self._broken_until = time.monotonic()  # writable at once; resumed at the next flush
         if self.writer_errors <= 10 or self.writer_errors % 100 == 0:
             kept = f"; abandoned {abandoned.name} (fleetdaq verify --recover)" if abandoned else ""
             self.bus.emit(
@@ -294,11 +316,14 @@ class Recorder:
     def _write_failed(self, what: str, err: OSError) -> None:
         assert self.session is not None
         self.write_errors += 1
-        first = self._broken_until == 0.0
+        first = not self._failure_reported
+        self._failure_reported = True
         self._broken_until = time.monotonic() + _RETRY_AFTER_ERROR_S
         abandoned = self.session.abandon()
         for st in self.streams.values():
             st.rollback()
+        lost_with_file, self._unflushed = self._unflushed, []
+        self._held[:0] = lost_with_file  # written into the abandoned file: write them again
         if first:
             kept = f"abandoned {abandoned.name} (fleetdaq verify --recover); " if abandoned else ""
             full = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
@@ -311,57 +336,63 @@ class Recorder:
                 errno=err.errno or 0,
             )
 
+    def _recovering(self) -> bool:
+        """A write failed and no flush has succeeded since: what is written now may still go
+        down with the next abandoned file, so events and messages wait."""
+        return self._broken_until != 0.0
+
     def _resumed(self) -> None:
-        if self._broken_until != 0.0:
-            self._broken_until = 0.0
-            held, self._held_events = self._held_events, []
-            for payload, time_ns, recv_ns in held:
-                self._write_event(payload, time_ns, recv_ns)
+        """A flush succeeded after a write error: the disk takes writes again. Called only
+        after the flush (a write alone may land in MCAP's in-memory chunk and fail later)."""
+        if not self._recovering():
+            return
+        self._broken_until = 0.0
+        held, self._held = self._held, []
+        for item in held:
+            self._write_held(item)
+        if self._failure_reported:
+            self._failure_reported = False
             self.bus.emit(
                 logging.WARNING,
                 "recorder",
                 "write_resumed",
-                "writing again; edges replay what was not acked",
+                f"writing again ({len(held)} held event(s) and message(s) written now); edges "
+                "replay what was not acked",
+                held=len(held),
             )
 
-    def _record_event(self, payload: bytes, time_ns: int, recv_ns: int) -> None:
-        if self._writable() and self._write_event(payload, time_ns, recv_ns):
-            return
+    def _hold(self, item: tuple[str, bytes, int, int, str]) -> None:
         # Kept until writing resumes, so the recording still tells what happened. Past the
-        # bound they are still in events.log and counted here.
-        if len(self._held_events) < _MAX_HELD_EVENTS:
-            self._held_events.append((payload, time_ns, recv_ns))
-        else:
+        # bound they are still in events.log (events) and counted here.
+        if len(self._held) < _MAX_HELD_EVENTS:
+            self._held.append(item)
+        elif item[4] == EVENT_TYPE:
             self.events_not_recorded += 1
+        else:
+            self.messages_not_recorded += 1
 
-    def _write_event(self, payload: bytes, time_ns: int, recv_ns: int) -> bool:
+    def _write_held(self, item: tuple[str, bytes, int, int, str]) -> None:
+        topic, payload, publish, recv_ns, msgtype = item
         assert self.session is not None
+        if self._guarded("writing", self.session.write, topic, payload, publish, recv_ns, msgtype):
+            self._unflushed.append(item)
+        else:
+            self._hold(item)
+
+    def _record_event(self, payload: bytes, time_ns: int, recv_ns: int) -> None:
         publish = time_ns if plausible_time(time_ns, recv_ns) else recv_ns
-        if not self._guarded(
-            "writing an event",
-            self.session.write,
-            EVENTS_TOPIC,
-            payload,
-            publish,
-            recv_ns,
-            EVENT_TYPE,
-        ):
-            return False
-        self._resumed()
-        return True
+        self._record_message(EVENTS_TOPIC, payload, publish, recv_ns, EVENT_TYPE)
 
     def _record_message(
         self, topic: str, payload: bytes, publish_ns: int, recv_ns: int, msgtype: str
     ) -> None:
         assert self.session is not None
-        if not self._writable():
-            self.messages_not_recorded += 1
-            return
         publish = publish_ns if plausible_time(publish_ns, recv_ns) else recv_ns
-        if self._guarded("writing", self.session.write, topic, payload, publish, recv_ns, msgtype):
-            self._resumed()
-        else:
-            self.messages_not_recorded += 1
+        item = (topic, payload, publish, recv_ns, msgtype)
+        if self._recovering():
+            self._hold(item)
+            return
+        self._write_held(item)
 
     def _malformed(self, st: StreamStats, err: WireError) -> None:
         st.malformed += 1
@@ -429,7 +460,6 @@ class Recorder:
         ):
             st.deferred += 1
             return
-        self._resumed()
         late = st.last_sequence is not None and h.sequence < st.last_sequence
         self.feed.publish(FedBatch(node, stream, h, payload, recv_ns, late))
         gap = st.count(
@@ -445,6 +475,23 @@ class Recorder:
                 node=node,
                 stream=stream,
                 gap_s=round(gap, 6),
+            )
+
+    def _dropped_by_edge(self, st: StreamStats, first: int, last: int) -> None:
+        newly_lost = st.dropped_by_edge(first, last)
+        if newly_lost:
+            self.bus.emit(
+                logging.ERROR,
+                "recorder",
+                "lost",
+                f"{st.node}/{st.stream}: {newly_lost} batch(es) of {first}..{last}, dropped by "
+                "the edge's full spool, were never received by this hub",
+                node=st.node,
+                stream=st.stream,
+                lost=newly_lost,
+                first=first,
+                last=last,
+                floor=last + 1,
             )
 
     def _implausible(self, st: StreamStats, t_ns: int) -> None:
@@ -475,6 +522,11 @@ class Recorder:
                 return
         elif not self._guarded("flushing", self.session.flush):
             return
+        self._unflushed = []  # durable now
+        if self._recovering():
+            # The flush went through: writing works again. The held events go in now and are
+            # made durable by the next flush (held again if that fails).
+            self._resumed()
         put = self.router.session.put
         for st in self.streams.values():
             st.durable = st.contiguous

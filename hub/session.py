@@ -9,6 +9,7 @@ effective config; the folder gets a rosbag2 ``metadata.yaml`` listing the closed
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import fnmatch
 import logging
@@ -243,7 +244,14 @@ class RecordingSession:
         f, self._file = self._file, None
         if f is None:
             return
-        f.finish()
+        try:
+            f.finish()
+        except OSError:
+            # Not finished: it stays .active (recoverable) and is abandoned like any other.
+            with contextlib.suppress(OSError):
+                f.fh.close()
+            self.abandoned.append(f.active)
+            raise
         self.closed.append(f.stats)
         self.write_rosbag2_metadata()
         log.info("closed %s (%d messages)", f.path.name, f.stats.messages)
@@ -256,6 +264,10 @@ class RecordingSession:
         f = self._file
         if f is not None:
             f.writer.flush()  # type: ignore[no-untyped-call]
+            # The file object buffers small writes (a chunk of a few events, the message
+            # indexes): push them to the OS first, or the fsync would not cover them and an
+            # ack could promise what is still in this process's memory.
+            f.fh.flush()
             os.fsync(f.fh.fileno())
 
     def abandon(self) -> Path | None:

@@ -57,6 +57,11 @@ class StreamStats:
     """Breaks in acquisition time between consecutive batches (e.g. an edge restart)."""
     acq_gap_s: float = 0.0
     last_receive_ns: int = 0
+    reported_drops: list[tuple[int, int]] = field(default_factory=list)
+    """Drops the edge reported before this hub saw the stream (applied at its first batch)."""
+    counted_lost: list[tuple[int, int]] = field(default_factory=list)
+    """Sequences below `first_sequence` counted lost from the edge's reports (disjoint,
+    inclusive intervals)."""
     _next_t: float | None = None
     _in_order: bool = False
     _recent: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=64))
@@ -73,6 +78,27 @@ class StreamStats:
         """Sequences not recorded: lost for good plus holes not (yet) filled."""
         return self.lost + self.missing
 
+    def dropped_by_edge(self, first: int, last: int) -> int:
+        """The edge reports it dropped `first`..`last` unacked (its spool was full). Those below
+        what this hub has seen of the stream were never received here: count them lost, once.
+        (Those above are counted when the edge's floor passes them, as holes still open.)
+        Returns how many were newly counted."""
+        if self.first_sequence is None:
+            if len(self.reported_drops) < 1000:
+                self.reported_drops.append((first, last))
+            return 0
+        top = min(last, self.first_sequence - 1)
+        if top < first:
+            return 0
+        new = top - first + 1
+        for a, b in self.counted_lost:  # disjoint intervals already counted
+            lo, hi = max(a, first), min(b, top)
+            if lo <= hi:
+                new -= hi - lo + 1
+        self.counted_lost = _merge([*self.counted_lost, (first, top)])
+        self.lost += new
+        return new
+
     def offer(self, seq: int, floor: int | None) -> tuple[bool, int]:
         """Account for a batch. Returns (is new, newly lost sequences)."""
         newly_lost = 0
@@ -82,6 +108,9 @@ class StreamStats:
             base = floor if floor is not None and floor <= seq else seq
             self.contiguous = self.durable = base - 1
             self.first_sequence = base
+            held, self.reported_drops = self.reported_drops, []
+            for first, last in held:
+                newly_lost += self.dropped_by_edge(first, last)
         elif floor is not None and floor > self.contiguous + 1:
             below = sum(1 for p in self.pending if p < floor)
             newly_lost = floor - 1 - self.contiguous - below
@@ -189,3 +218,13 @@ class StreamStats:
             "last_sequence": self.last_sequence,
             "acked": self.durable,
         }
+
+
+def _merge(intervals: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    out: list[tuple[int, int]] = []
+    for a, b in sorted(intervals):
+        if out and a <= out[-1][1] + 1:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

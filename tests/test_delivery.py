@@ -493,12 +493,7 @@ def test_a_full_hub_disk_is_an_event_and_recording_resumes_when_space_returns(
     recorded = Counter(level for level, *_ in rig.leveled_events())
     if recorded != Counter(raised):  # type: ignore[arg-type]
         mismatches.append(f"events raised {raised}, recorded {dict(recorded)}")
-    if mismatches:
-        # Known, reported: hub/recorder.py calls _resumed() as soon as RecordingSession.write()
-        # returns, but that only appends to MCAP's in-memory chunk of a newly opened file; the
-        # flush then fails (disk_full again) and the held events written "on resume" go down
-        # with the abandoned file's unflushed chunk.
-        pytest.xfail("; ".join(mismatches))
+    assert not mismatches, "; ".join(mismatches)
 
 
 def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Rig):

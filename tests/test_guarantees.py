@@ -253,10 +253,6 @@ def test_a_spool_overflow_is_reported_exactly_and_the_hub_counts_it_lost(site: S
         "floors reported by the edge": True,
         "every lost batch below a floor": True,
     }
-    if outage == "hub restarted" and counted != expected:
-        # Known, reported: a hub that starts after the drops takes the edge's floor as the
-        # stream's base (hub/stream_stats.py StreamStats.offer) and counts nothing lost.
-        pytest.xfail(f"after a hub restart the hub counts {counted}, expected {expected}")
     assert counted == expected
 
 

@@ -10,6 +10,7 @@ Past `max_bytes` the journal is rewritten with the last line of each alarm (atom
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -28,6 +29,9 @@ class Journal:
         self._fh: Any = None
         self._dirty = False
         self.torn_lines = 0
+        self.write_errors = 0
+        self.last_error = ""
+        self._opened = False
 
     def load(self) -> dict[str, dict[str, Any]]:
         """The last record of every alarm in the journal (empty if there is none yet)."""
@@ -51,26 +55,57 @@ class Journal:
         if self.path.exists() and self.path.stat().st_size > self.max_bytes:
             self._compact()
         self._fh = self.path.open("a", encoding="utf-8")
+        self._opened = True
 
-    def append(self, record: dict[str, Any], sync: bool = False) -> None:
-        """Add a line; `sync`: fsync before returning (operator actions)."""
+    def append(self, record: dict[str, Any], sync: bool = False) -> bool:
+        """Add a line; `sync`: fsync before returning (operator actions). False when the disk
+        refused it (counted in `write_errors`; alarms go on in memory)."""
         line = json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n"
         with self._lock:
             if self._fh is None:
-                return
-            self._fh.write(line)
-            self._fh.flush()
-            if sync:
-                os.fsync(self._fh.fileno())
-                self._dirty = False
-            else:
-                self._dirty = True
+                if not self._opened:
+                    return False
+                try:
+                    self._fh = self.path.open("a", encoding="utf-8")
+                except OSError as err:
+                    self.write_errors += 1
+                    self.last_error = str(err)
+                    return False
+            try:
+                self._fh.write(line)
+                self._fh.flush()
+                if sync:
+                    os.fsync(self._fh.fileno())
+                    self._dirty = False
+                else:
+                    self._dirty = True
+            except OSError as err:
+                self._failed(err)
+                return False
+            return True
 
     def sync(self) -> None:
         with self._lock:
             if self._fh is not None and self._dirty:
-                os.fsync(self._fh.fileno())
-                self._dirty = False
+                try:
+                    os.fsync(self._fh.fileno())
+                    self._dirty = False
+                except OSError as err:
+                    self._failed(err)
+
+    def _failed(self, err: OSError) -> None:
+        """The disk refused a write: reopen the file next time (a partial line is skipped
+        as torn when the journal is read)."""
+        self.write_errors += 1
+        self.last_error = str(err)
+        if self.write_errors == 1 or self.write_errors % 1000 == 0:
+            log.error("alarm journal %s: %s (%d so far)", self.path, err, self.write_errors)
+        with contextlib.suppress(OSError):
+            self._fh.close()
+        try:
+            self._fh = self.path.open("a", encoding="utf-8")
+        except OSError:
+            self._fh = None
 
     def _compact(self) -> None:
         last = self.load()
@@ -86,6 +121,10 @@ class Journal:
     def close(self) -> None:
         self.sync()
         with self._lock:
+            self._opened = False
             if self._fh is not None:
-                self._fh.close()
+                try:
+                    self._fh.close()
+                except OSError as err:
+                    log.error("closing the alarm journal: %s", err)
                 self._fh = None

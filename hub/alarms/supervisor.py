@@ -118,6 +118,8 @@ class Supervisor:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
         self._died: str | None = None
+        self._journal_errors_told = 0
+        self._journal_told_at = 0.0
 
     # --- lifecycle ----------------------------------------------------------------------------
 
@@ -229,11 +231,30 @@ class Supervisor:
                         if change is not None:
                             self._apply(a, change)
                 self.journal.sync()
+                self._journal_health()
                 self._publish()
         except Exception as err:
             self._died = f"the supervisor's thread died: {err!r}"
             log.critical("%s", self._died, exc_info=True)
             self.bus.emit(logging.CRITICAL, "alarms", "supervisor_died", self._died)
+
+    def _journal_health(self) -> None:
+        """The journal cannot be written (a full disk): say so, at most once a minute."""
+        errors = self.journal.write_errors
+        if errors > self._journal_errors_told:
+            now = time.monotonic()
+            if now - self._journal_told_at >= 60.0:
+                self._journal_told_at = now
+                self._journal_errors_told = errors
+                self.bus.emit(
+                    logging.ERROR,
+                    "alarms",
+                    "journal_error",
+                    f"the alarm journal cannot be written ({self.journal.last_error}; "
+                    f"{errors} failed write(s)): alarms work on, but a restart would not "
+                    "remember what changed meanwhile",
+                    errors=errors,
+                )
 
     def _check(self, a: Alarm, view: HubView, now: int) -> tuple[bool, float]:
         d = a.d
