@@ -10,23 +10,56 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from edge.config.alarms import Severity
 from edge.schema import NAME, Float, Int, Strict
 
-EMAIL = r"^[^@\s]+@[^@\s]+$"
-Email = Annotated[str, Field(pattern=EMAIL)]
+EMAIL = re.compile(r"^[^@\s<>,;:\"()\[\]\\]+@[A-Za-z0-9.-]+$")
+ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+HOST = re.compile(r"^[A-Za-z0-9._:\[\]-]+$")
+
+
+def _email(value: str) -> str:
+    # No whitespace, brackets or commas: an address goes into To:/From: headers and the SMTP
+    # envelope as it is, so nothing that could split or inject a header.
+    if not EMAIL.match(value):
+        raise ValueError(f"not an e-mail address: {value!r} (expected name@example.com)")
+    return value
+
+
+def _env_name(value: str) -> str:
+    if not ENV_NAME.match(value):
+        raise ValueError(
+            f"not an environment variable name: {value!r} (letters, digits and '_', "
+            "e.g. FLEETDAQ_SMTP_PASSWORD)"
+        )
+    return value
+
+
+def _host(value: str) -> str:
+    if not HOST.match(value):
+        raise ValueError(f"not a host name or address: {value!r}")
+    return value
+
+
+def _url(value: str) -> str:
+    if not re.match(r"^https?://[^\s]+$", value):
+        raise ValueError(f"not a web address: {value!r} (expected http://... or https://...)")
+    return value
+
+
+Email = Annotated[str, AfterValidator(_email)]
 
 
 class SmtpConfig(Strict):
     """Any SMTP server: STARTTLS (587), implicit TLS (465) or plain (25, a local relay)."""
 
-    host: Annotated[str, Field(min_length=1)]
+    host: Annotated[str, AfterValidator(_host)]
     port: Annotated[Int, Field(ge=1, le=65535)] = 587
     security: Literal["starttls", "tls", "plain"] = "starttls"
     username: str | None = None
-    password_env: Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")] | None = None
+    password_env: Annotated[str, AfterValidator(_env_name)] | None = None
     """The environment variable holding the password (e.g. FLEETDAQ_SMTP_PASSWORD)."""
     password_file: str | None = None
     """A file holding the password (first line), readable by its owner only."""
@@ -92,7 +125,7 @@ class NotifyConfig(Strict):
     smtp: SmtpConfig | None = None
     """Without it nothing is sent (the hub says so once at start)."""
     groups: dict[Annotated[str, Field(pattern=NAME)], GroupConfig] = {}
-    dashboard_url: Annotated[str, Field(pattern=r"^https?://")] | None = None
+    dashboard_url: Annotated[str, AfterValidator(_url)] | None = None
     """A link to put in every mail."""
     outbox_dir: str | None = None
     """Where mails wait until delivered (default: `<data_dir>/outbox`)."""
