@@ -120,6 +120,14 @@ class GroupConfig(Strict):
     max_per_hour: Annotated[Int, Field(ge=1, le=10000)] = 30
     """Past this, what happens goes into the next digest instead of mails of its own."""
 
+    @model_validator(mode="before")
+    @classmethod
+    def _yaml_on_key(cls, data: Any) -> Any:
+        # YAML 1.1 (PyYAML) reads a bare `on:` key as the boolean true: take it as `on`.
+        if isinstance(data, dict) and any(k is True for k in data):
+            data = {("on" if k is True else k): v for k, v in data.items()}
+        return data
+
 
 class NotifyConfig(Strict):
     smtp: SmtpConfig | None = None

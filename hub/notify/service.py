@@ -161,7 +161,16 @@ class EmailNotifier:
                     f"e-mail: {name} in the outbox cannot be read; moved to "
                     f"{self.outbox.failed_dir}",
                 )
-            recovered = self.policy.recover(self.held.load(), self.clock.monotonic())
+            held = self.held.load()
+            gone = sorted({h.group for h in held} - set(self.cfg.groups))
+            if gone:
+                self._event(
+                    logging.WARNING,
+                    "notify_groups_gone",
+                    f"e-mail: transitions held for group(s) {', '.join(gone)} when the hub "
+                    "stopped are dropped: the site file no longer has those groups",
+                )
+            recovered = self.policy.recover(held, self.clock.monotonic())
         self._started = True
         self._say_hello(sum(len(o.fresh) for o in recovered))
         if recovered:

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ from hub.bus import EventBus
 from hub.errors import NotifyError, SecretError
 from hub.notify.service import EmailNotifier
 from tests.notify.helpers import Events, ManualClock, WatchedModel, alarm, config, running
-from tests.notify.smtp_server import SmtpServer, ThrowawayCA
+from tests.notify.smtp_server import WAIT_S, SmtpServer, ThrowawayCA
 from tests.notify.victim import PASSWORD_ENV
 from tests.procs import REPO, free_port
 
@@ -503,3 +504,27 @@ def test_submit_never_blocks_and_says_what_it_had_to_drop(tmp_path: Path) -> Non
         notifier.stop()
         bus.stop()
     assert "15 transition(s) dropped" in dropped.message
+
+
+class _DyingClock(ManualClock):
+    """A clock whose first wait ends the thread that waits: a worker dying of something no
+    handler catches (what `failure()` is for)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.died = threading.Event()
+
+    def wait(self, event: threading.Event, timeout: float) -> bool:
+        if not self.died.is_set():
+            self.died.set()
+            raise SystemExit("gone")
+        return super().wait(event, timeout)
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_worker_thread_that_dies_anyway_is_reported_as_a_failure(tmp_path: Path) -> None:
+    clock = _DyingClock()
+    with running(config({"ops": {"to": ["ops@x.example"]}}), tmp_path / "o", clock) as (n, _, _):
+        assert clock.died.wait(WAIT_S)
+        n._thread.join(WAIT_S)
+        assert n.failure() == "the notifier's policy thread died: SystemExit: gone"
