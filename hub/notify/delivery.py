@@ -43,7 +43,7 @@ RETRY_MIN_S = 30.0
 STOP_GRACE_S = 5.0
 """At stop, the last pass may take this long (and no longer than the SMTP timeout)."""
 IDLE_WAIT_S = 60.0
-"""With nothing queued, look again this often anyway (a mail moved back in by hand)."""
+"""With nothing queued, the thread still wakes this often (a kick wakes it at once)."""
 
 
 class Events(Protocol):

@@ -96,6 +96,7 @@ class EmailNotifier:
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._main, name="notify-policy", daemon=True)
         self._started = False
+        self._started_wall = 0.0
         self._stopped = False
         self._died: str | None = None
         self.received = 0
@@ -133,6 +134,7 @@ class EmailNotifier:
         if self._started:
             return
         smtp = self.cfg.smtp
+        self._started_wall = self.clock.time()
         recovered: list[Outgoing] = []
         if smtp is not None and self.outbox is not None and self.held is not None:
             secret = read_password(smtp)
@@ -355,7 +357,9 @@ class EmailNotifier:
         created = [e.created for e, _ in self._unwritten]
         if self.outbox is not None and (oldest := self.outbox.oldest_created()) is not None:
             created.append(oldest)
-        age = max(0.0, now - min(created)) if created else 0.0
+        # Mails a previous run left count from this start: the alarm on this age says that
+        # delivery is failing now, not that the hub was off (they usually go in a moment).
+        age = max(0.0, now - max(min(created), self._started_wall)) if created else 0.0
         queued = (len(self.outbox) if self.outbox is not None else 0) + len(self._unwritten)
         if smtp is None:
             state = "off"

@@ -25,7 +25,7 @@ class ManualClock:
 
     def __init__(self) -> None:
         self._mono = 1000.0
-        self._wall = time.time()
+        self._wall = float(int(time.time()))  # whole seconds: ages after whole advances are exact
         self._lock = threading.Lock()
         self._waiters: set[threading.Event] = set()
 

@@ -189,6 +189,24 @@ def test_mails_left_queued_by_a_stopped_hub_are_sent_when_it_starts_again(
     assert sorted(m.subject for m in got)[0] == "[fleetdaq buoy-1] CRITICAL alarm_0 raised"
 
 
+def test_a_backlog_left_by_a_previous_run_counts_its_waiting_from_this_start(
+    tmp_path: Path, ca: ThrowawayCA, password: str
+) -> None:
+    server = SmtpServer("starttls", ca, {"hub": PASSWORD})  # down all along
+    cfg = config({"ops": {"to": ["ops@x.example"]}}, smtp(server, ca))
+    clock, outbox = ManualClock(), tmp_path / "outbox"
+    with running(cfg, outbox, clock) as (notifier, model, _):
+        notifier.submit(alarm(severity="critical"))
+        model.wait_notifier(lambda c: c["queued"] == 1 and c["state"] == "failing")
+    clock.advance(7200)  # the hub was off for two hours
+    with running(cfg, outbox, clock) as (_, model, _):
+        at_start = model.wait_notifier(lambda c: c["queued"] == 1 and c["failed_attempts"] == 1)
+        clock.advance(60)
+        later = model.wait_notifier(lambda c: c["oldest_queued_age_s"] >= 60)
+    assert at_start["oldest_queued_age_s"] == 0
+    assert later["oldest_queued_age_s"] == 60
+
+
 def test_a_notifier_killed_with_sigkill_loses_neither_queued_mails_nor_held_transitions(
     tmp_path: Path, ca: ThrowawayCA, monkeypatch: pytest.MonkeyPatch
 ) -> None:
