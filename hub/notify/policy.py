@@ -18,7 +18,8 @@ Per group (`hub.notify.groups.<name>` in the site file):
 - **Rate limit** (`max_per_hour`): a sliding hour. Past it, transitions are collected into the
   next digest, which goes out as soon as the limit allows; nothing is dropped. Critical alarms
   have their own budget of `max_per_hour`, so a flood of minor alarms never delays a critical
-  one, and a flood of critical ones still ends in digests.
+  one, and a flood of critical ones still ends in digests (sent when either budget allows: at
+  most 2 × `max_per_hour` mails an hour per group).
 - **Snooze** (`snooze_s` > 0, MODAQ 2's topicErrorEmailSnooze, per alarm name). After a mail
   about an alarm, further transitions of it for `snooze_s` are held back and counted. When
   the snooze ends, if any were held back, the latest is mailed with the count ("and 6 more

@@ -142,13 +142,23 @@ def test_a_flood_of_minor_alarms_does_not_delay_a_critical_one() -> None:
     assert names(offer(p, 10, name="fire", severity="critical")) == [("ops", False, 1)]
 
 
-def test_a_flood_of_critical_alarms_ends_in_digests_too() -> None:
+def test_a_flood_of_critical_alarms_ends_in_digests_at_most_twice_the_limit_an_hour() -> None:
     p = policy(ops={"to": ["ops@x.example"], "max_per_hour": 2})
-    mails = [m for i in range(6) for m in offer(p, i, name=f"c{i}", severity="critical")]
-    assert len(mails) == 2
-    (digest,) = p.due(3600)
+    mails = [m for i in range(10) for m in offer(p, i, name=f"c{i}", severity="critical")]
+    mails += p.due(10)  # past the critical budget: a digest on the other one
+    mails += [m for i in range(5) for m in offer(p, 11 + i, name=f"d{i}", severity="critical")]
+    mails += p.due(16)
+    assert [(m.digest, len(m.fresh)) for m in mails] == [
+        (False, 1),
+        (False, 1),
+        (True, 8),
+        (True, 5),
+    ]
+    assert [m for i in range(3) for m in offer(p, 20 + i, name=f"e{i}", severity="critical")] == []
+    assert p.due(3599) == []
+    (digest,) = p.due(3600)  # the first critical mail is an hour old
     assert digest.reason == "critical"
-    assert len(digest.fresh) == 4
+    assert len(digest.fresh) == 3
 
 
 # --- snooze --------------------------------------------------------------------------------------
