@@ -74,6 +74,27 @@ BAD: dict[str, tuple[str, str]] = {
     "bad_endpoint_unknown_protocol.yaml": ("nodes.wec.connect[0]", "unknown protocol 'tpc'"),
     "bad_listen_endpoint.yaml": ("hub.listen[0]", "unclosed '['"),
     "bad_stream_named_health.yaml": ("nodes.wec.streams.health", "is reserved"),
+    # Notifications: no password in the site file, and nothing a mail header could trip on.
+    "bad_notify_password_in_site_file.yaml": (
+        "hub.notify.smtp",
+        "no passwords in the site file: put it in an environment variable",
+    ),
+    "bad_notify_password_over_plain.yaml": (
+        "hub.notify.smtp",
+        "refusing to send a password over plain SMTP",
+    ),
+    "bad_notify_password_env_invalid.yaml": (
+        "hub.notify.smtp.password_env",
+        "not an environment variable name: '$SMTP PASSWORD'",
+    ),
+    "bad_notify_recipient_not_an_address.yaml": (
+        "hub.notify.groups.ops.to[1]",
+        "not an e-mail address: 'Ops Team <ops@example.com>'",
+    ),
+    "bad_notify_unknown_transition.yaml": (
+        "hub.notify.groups.ops.on[1]",
+        "'raised', 'cleared' or 'acked'",
+    ),
 }
 
 GOOD = sorted(p.name for p in (REPO / DATA).glob("good_*.yaml"))

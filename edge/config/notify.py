@@ -10,23 +10,56 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from edge.config.alarms import Severity
 from edge.schema import NAME, Float, Int, Strict
 
-EMAIL = r"^[^@\s]+@[^@\s]+$"
-Email = Annotated[str, Field(pattern=EMAIL)]
+EMAIL = re.compile(r"^[^@\s<>,;:\"()\[\]\\]+@[A-Za-z0-9.-]+$")
+ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+HOST = re.compile(r"^[A-Za-z0-9._:\[\]-]+$")
+
+
+def _email(value: str) -> str:
+    # No whitespace, brackets or commas: an address goes into To:/From: headers and the SMTP
+    # envelope as it is, so nothing that could split or inject a header.
+    if not EMAIL.match(value):
+        raise ValueError(f"not an e-mail address: {value!r} (expected name@example.com)")
+    return value
+
+
+def _env_name(value: str) -> str:
+    if not ENV_NAME.match(value):
+        raise ValueError(
+            f"not an environment variable name: {value!r} (letters, digits and '_', "
+            "e.g. FLEETDAQ_SMTP_PASSWORD)"
+        )
+    return value
+
+
+def _host(value: str) -> str:
+    if not HOST.match(value):
+        raise ValueError(f"not a host name or address: {value!r}")
+    return value
+
+
+def _url(value: str) -> str:
+    if not re.match(r"^https?://[^\s]+$", value):
+        raise ValueError(f"not a web address: {value!r} (expected http://... or https://...)")
+    return value
+
+
+Email = Annotated[str, AfterValidator(_email)]
 
 
 class SmtpConfig(Strict):
     """Any SMTP server: STARTTLS (587), implicit TLS (465) or plain (25, a local relay)."""
 
-    host: Annotated[str, Field(min_length=1)]
+    host: Annotated[str, AfterValidator(_host)]
     port: Annotated[Int, Field(ge=1, le=65535)] = 587
     security: Literal["starttls", "tls", "plain"] = "starttls"
     username: str | None = None
-    password_env: Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")] | None = None
+    password_env: Annotated[str, AfterValidator(_env_name)] | None = None
     """The environment variable holding the password (e.g. FLEETDAQ_SMTP_PASSWORD)."""
     password_file: str | None = None
     """A file holding the password (first line), readable by its owner only."""
@@ -87,12 +120,20 @@ class GroupConfig(Strict):
     max_per_hour: Annotated[Int, Field(ge=1, le=10000)] = 30
     """Past this, what happens goes into the next digest instead of mails of its own."""
 
+    @model_validator(mode="before")
+    @classmethod
+    def _yaml_on_key(cls, data: Any) -> Any:
+        # YAML 1.1 (PyYAML) reads a bare `on:` key as the boolean true: take it as `on`.
+        if isinstance(data, dict) and any(k is True for k in data):
+            data = {("on" if k is True else k): v for k, v in data.items()}
+        return data
+
 
 class NotifyConfig(Strict):
     smtp: SmtpConfig | None = None
     """Without it nothing is sent (the hub says so once at start)."""
     groups: dict[Annotated[str, Field(pattern=NAME)], GroupConfig] = {}
-    dashboard_url: Annotated[str, Field(pattern=r"^https?://")] | None = None
+    dashboard_url: Annotated[str, AfterValidator(_url)] | None = None
     """A link to put in every mail."""
     outbox_dir: str | None = None
     """Where mails wait until delivered (default: `<data_dir>/outbox`)."""
