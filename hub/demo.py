@@ -17,7 +17,7 @@ from rich.live import Live
 from rich.table import Table
 
 from edge.config.site import SiteConfig
-from hub.errors import RouterError
+from hub.errors import HubError, RouterError
 from hub.event_log import format_event
 from hub.read_model import HubView
 from hub.runtime import HubRuntime
@@ -171,6 +171,9 @@ def run_demo(
     except RouterError as err:
         console.print(f"[red]{err}[/red]\nIs another fleetdaq hub running? Try --listen.")
         return 1, {"error": str(err)}
+    except HubError as err:
+        console.print(f"[red]{err}[/red]")
+        return 2, {"error": str(err)}
     endpoint = listen or None
     session = h.recorder.session
     assert session is not None

@@ -36,6 +36,7 @@ from hub.fleet_time import FleetTimeService
 from hub.heartbeat import Heartbeat
 from hub.hub_health import HubHealth
 from hub.node_watch import NodeWatch
+from hub.notify.service import EmailNotifier
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
@@ -89,6 +90,9 @@ class HubRuntime:
         self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
         self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
         self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        notify = site.hub.notify
+        outbox = Path(notify.outbox_dir) if notify.outbox_dir else self.data_dir / "outbox"
+        self.notifier = EmailNotifier(notify, site.site, outbox, self.bus, self.model)
         journal = site.hub.alarm_journal
         self.supervisor = Supervisor(
             site,
@@ -97,7 +101,7 @@ class HubRuntime:
             self.recorder,
             self.feed,
             Path(journal) if journal else self.data_dir / "alarms.journal",
-            notifier=None,
+            notifier=self.notifier,
             snapshot=self.snapshot,
         )
         self.alarm_requests = AlarmRequests(self.router, self.keys, self.supervisor)
@@ -108,6 +112,7 @@ class HubRuntime:
                 self.router,
                 _BusService(self.bus),
                 self.event_log,
+                self.notifier,  # before the supervisor: its last transitions still mailed
                 self.recorder,
                 self.nodes,
                 self.fleet,
@@ -183,6 +188,7 @@ class HubRuntime:
         out = self.recorder.summary()
         out["events"] = dict(self.event_log.counts)
         out["alarms"] = dict(self.supervisor.totals)
+        out["mails"] = dict(self.snapshot().notifier)
         out["bus"] = list(self.snapshot().bus)
         out["failures"] = [f"{name}: {why}" for name, why in self.failures()]
         return out

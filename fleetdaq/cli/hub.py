@@ -55,7 +55,7 @@ def hub(
             except ValueError as err:
                 fail(f"--listen: {err}")
     setup_logging(verbose)
-    from hub.errors import RouterError
+    from hub.errors import HubError, RouterError, SecretError
     from hub.runtime import HubRuntime
 
     runtime = HubRuntime(site, Path(data_dir) if data_dir else None, list(listen) or None)
@@ -74,6 +74,10 @@ def hub(
                 if ticks % 10 == 0:
                     log.info("%s", _progress_line(runtime.summary()))
     except RouterError as err:
+        fail(str(err), 1)
+    except SecretError as err:
+        fail(f"{config}: {err}", 2)
+    except HubError as err:
         fail(str(err), 1)
     final = runtime.summary()
     log.info("stopped: %s", _progress_line(final))

@@ -120,6 +120,8 @@ def _digest_headline(out: Outgoing) -> str:
     alarms = f"{n} alarm{'' if n == 1 else 's'}"
     if out.reason == "recovered":
         return f"{alarms} held when the hub stopped"
+    if out.span_s < 1:
+        return alarms
     return f"{alarms} in the last {duration(out.span_s)}"
 
 

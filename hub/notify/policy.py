@@ -165,7 +165,8 @@ class _Group:
     normal: _Budget
     critical: _Budget
     window_end: float | None = None
-    since: float = 0.0
+    since: float | None = None
+    """When what the next digest lists began (None: nothing held yet)."""
     """When the collection in `held` started (the window's opening, or the first held item)."""
     held: list[Item] = field(default_factory=list)
     rate_limited: bool = False
@@ -284,6 +285,9 @@ class Policy:
                     items.append(
                         dataclasses.replace(s.latest, held_back=tuple(sorted(s.by.items())))
                     )
+            if g.since is None:  # only snoozed repeats: they span the snoozes
+                starts = [s.until - g.cfg.snooze_s for s in g.snooze.values() if s.count]
+                g.since = min(starts, default=now)
             g.snooze.clear()
             if any(not i.at_once for i in items):
                 g.held = items
@@ -350,6 +354,8 @@ class Policy:
         if not g.fresh() and not g.window_open(now):
             g.held = []  # what a closed window listed was mailed already
             g.since = now
+        if g.since is None:
+            g.since = now  # a digest's span starts with the first thing it holds
         g.held.append(item)
         self._new.append(Held(g.name, "digest", item))
 
@@ -376,6 +382,8 @@ class Policy:
         listed = dataclasses.replace(item, at_once=True)
         if g.window_open(now) or g.fresh():
             g.held.append(listed)  # the digest to come lists it too
+            if g.since is None:
+                g.since = now
         elif g.cfg.digest_s > 0:  # a mail in a quiet group opens a window
             g.held = [listed]
             g.since = now
@@ -406,7 +414,7 @@ class Policy:
 
     def _digest(self, g: _Group, now: float, reason: str, budget: _Budget) -> Outgoing:
         items = tuple(g.held)
-        span = max(0.0, now - g.since)
+        span = max(0.0, now - g.since) if g.since is not None else 0.0
         g.held = []
         g.rate_limited = False
         budget.spend(now)
