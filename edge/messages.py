@@ -22,7 +22,11 @@ __all__ = [
     "HostMetrics",
     "HubHeartbeat",
     "KeyValue",
+    "CommandRecord",
     "NodeHealth",
+    "OutputCommand",
+    "OutputReply",
+    "OutputState",
     "StreamHealth",
     "TimeCheck",
     "TimeSyncStatus",
@@ -50,6 +54,10 @@ for _name in (
     "TimeCheck",
     "HubHeartbeat",
     "AlarmState",
+    "OutputCommand",
+    "OutputReply",
+    "CommandRecord",
+    "OutputState",
 ):
     load_definition(f"fleetdaq_msgs/msg/{_name}")
 
@@ -57,6 +65,7 @@ EVENT_TYPE: Final = "fleetdaq_msgs/msg/Event"
 NODE_HEALTH_TYPE: Final = "fleetdaq_msgs/msg/NodeHealth"
 HUB_HEARTBEAT_TYPE: Final = "fleetdaq_msgs/msg/HubHeartbeat"
 ALARM_STATE_TYPE: Final = "fleetdaq_msgs/msg/AlarmState"
+COMMAND_RECORD_TYPE: Final = "fleetdaq_msgs/msg/CommandRecord"
 
 
 @message("diagnostic_msgs/msg/KeyValue")
@@ -274,6 +283,23 @@ class TimeSyncStatus:
         )
 
 
+@message("fleetdaq_msgs/msg/OutputState")
+@dataclass(frozen=True, slots=True)
+class OutputState:
+    name: str
+    kind: str
+    unit: str
+    value: float
+    readback: float
+    readback_ns: int
+    readback_source: str
+    armed: bool
+    safe_state: bool
+    interlocks: tuple[str, ...]
+    commands: int
+    refused: int
+
+
 @message(NODE_HEALTH_TYPE)
 @dataclass(frozen=True, slots=True)
 class NodeHealth:
@@ -284,6 +310,7 @@ class NodeHealth:
     host: HostMetrics
     streams: tuple[StreamHealth, ...]
     clock: TimeSyncStatus
+    outputs: tuple[OutputState, ...] = ()
 
     def stream(self, name: str) -> StreamHealth | None:
         return next((s for s in self.streams if s.name == name), None)
@@ -331,8 +358,88 @@ class AlarmState:
     shelved_until_ns: int
 
 
+REFUSALS: Final = (
+    "unknown_output",
+    "not_armed",
+    "out_of_limits",
+    "too_fast",
+    "interlock",
+    "safe_state",
+    "too_old",
+    "not_allowed",
+    "device_error",
+    "timeout",
+)
+"""Why a command can be refused (`timeout`: the hub heard no reply)."""
+ACTIONS: Final = ("set", "pulse", "arm", "disarm", "read")
+
+
+@message("fleetdaq_msgs/msg/OutputCommand")
+@dataclass(frozen=True, slots=True)
+class OutputCommand:
+    command_id: str
+    output: str
+    action: str
+    value: float
+    pulse_s: float
+    sender: str
+    who: str
+    reason: str
+    issued_ns: int
+    max_age_s: float
+
+    def __post_init__(self) -> None:
+        if self.action not in ACTIONS:
+            raise ValueError(f"unknown action {self.action!r}")
+        if self.sender not in ("operator", "rule"):
+            raise ValueError(f"unknown sender {self.sender!r}")
+        if not self.command_id or len(self.command_id) > 128:
+            raise ValueError("a command id is 1 to 128 characters")
+
+
+@message("fleetdaq_msgs/msg/OutputReply")
+@dataclass(frozen=True, slots=True)
+class OutputReply:
+    command_id: str
+    output: str
+    action: str
+    applied: bool
+    refusal: str
+    message: str
+    requested: float
+    readback: float
+    readback_ns: int
+    readback_source: str
+    armed: bool
+    safe_state: bool
+    interlocks: tuple[str, ...]
+    replied_ns: int
+
+    def __post_init__(self) -> None:
+        if self.refusal and self.refusal not in REFUSALS:
+            raise ValueError(f"unknown refusal {self.refusal!r}")
+        if self.applied == bool(self.refusal):
+            raise ValueError("a reply is applied or refused with a reason, not both")
+
+
+@message(COMMAND_RECORD_TYPE)
+@dataclass(frozen=True, slots=True)
+class CommandRecord:
+    command: OutputCommand
+    reply: OutputReply
+    node: str
+    sent_ns: int
+    answered_ns: int
+
+
 SCHEMAS: Final = {
     name: schema_text(name)
-    for name in (EVENT_TYPE, NODE_HEALTH_TYPE, HUB_HEARTBEAT_TYPE, ALARM_STATE_TYPE)
+    for name in (
+        EVENT_TYPE,
+        NODE_HEALTH_TYPE,
+        HUB_HEARTBEAT_TYPE,
+        ALARM_STATE_TYPE,
+        COMMAND_RECORD_TYPE,
+    )
 }
 """The ros2msg schema (with dependencies) of every message here that the hub records."""

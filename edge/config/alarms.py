@@ -188,10 +188,10 @@ def _exactly_one(model: Strict, names: tuple[str, ...]) -> None:
 
 
 def _kind(value: Any) -> str | None:
-    if isinstance(value, dict):
-        for key in ("channel", "stream", "node", "hub"):
-            if key in value:
-                return key
+    """Which kind of alarm: the key it names (from YAML) or the field it has (a model)."""
+    for key in ("channel", "stream", "node", "hub"):
+        if key in value if isinstance(value, dict) else hasattr(value, key):
+            return key
     return None
 
 
