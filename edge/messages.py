@@ -17,12 +17,12 @@ from ptp.status import Check, Level, SyncState, TimeStatus
 
 __all__ = [
     "AlarmState",
+    "CommandRecord",
     "DiskUsage",
     "Event",
     "HostMetrics",
     "HubHeartbeat",
     "KeyValue",
-    "CommandRecord",
     "NodeHealth",
     "OutputCommand",
     "OutputReply",
