@@ -106,6 +106,10 @@ class HubView:
     """Transitions since the hub started: raised, cleared, acked, shelved, disabled."""
     notifier: dict[str, Any] = field(default_factory=dict)
     """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
+    rules: dict[str, Any] = field(default_factory=dict)
+    """Every rule's and hub interlock's state (`hub.rules.RuleEngine.states`)."""
+    commands: dict[str, int] = field(default_factory=dict)
+    """Commands sent, applied, refused, timed out."""
     fleet: dict[str, Any] = field(default_factory=dict)
     """The fleet's time (`hub.fleet_time.FleetView.to_dict`)."""
     recent_events: tuple[Event, ...] = ()

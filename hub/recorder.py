@@ -101,6 +101,8 @@ class Recorder:
         self._thread = threading.Thread(target=self._writer, name="recorder", daemon=True)
         self._subs: list[Any] = []
         self._stopped = False
+        self.recording = True
+        """False while stopped by an operator or a rule (`stop_recording`)."""
         self._died: str | None = None
         self._broken_until = 0.0
         self._failure_reported = False
@@ -116,8 +118,8 @@ class Recorder:
 
     # --- lifecycle ----------------------------------------------------------------------------
 
-    def start(self) -> None:
-        self.session = RecordingSession(
+    def _new_session(self) -> RecordingSession:
+        return RecordingSession(
             self.data_dir,
             self.site.site,
             list(self.site.nodes),
@@ -125,6 +127,9 @@ class Recorder:
             effective_yaml(self.site),
             time.time_ns(),
         )
+
+    def start(self) -> None:
+        self.session = self._new_session()
         if self.cfg.recover_on_start:
             self._recover_crashed_files()
         self._publish_view(force=True)
@@ -389,6 +394,8 @@ class Recorder:
         assert self.session is not None
         publish = publish_ns if plausible_time(publish_ns, recv_ns) else recv_ns
         item = (topic, payload, publish, recv_ns, msgtype)
+        if not self.recording:
+            return  # stopped by an operator or a rule: nothing is written (nothing is owed)
         if self._recovering():
             self._hold(item)
             return
@@ -455,8 +462,12 @@ class Recorder:
         if not plausible_time(publish, recv_ns):
             publish = recv_ns
             self._implausible(st, h.first_sample_time_ns)
-        if st.recorded and not self._guarded(
-            "writing", self.session.write, topic_of(node, stream), payload, publish, recv_ns
+        if (
+            st.recorded
+            and self.recording
+            and not self._guarded(
+                "writing", self.session.write, topic_of(node, stream), payload, publish, recv_ns
+            )
         ):
             st.deferred += 1
             return
@@ -541,7 +552,13 @@ class Recorder:
         self._last_view = now
         s = self.session
         if state is None:
-            state = "recording" if self._writable() else "disk_error"
+            state = (
+                "stopped"
+                if not self.recording
+                else "recording"
+                if self._writable()
+                else "disk_error"
+            )
         current = s.current_file if s is not None else None
         size = s.current_size() if s is not None else 0
         self.model.put("streams", tuple(st.view() for st in self.streams.values()))
@@ -566,10 +583,68 @@ class Recorder:
 
     # --- control ---------------------------------------------------------------------------------
 
-    def split(self) -> None:
+    def split(self, who: str = "") -> str:
+        """Close the current file now; the next message opens the next one."""
         with self.lock:
             assert self.session is not None
-            self._guarded("closing a file", self.session.split)
+            if not self.recording:
+                return "not recording: nothing to split"
+            current = self.session.current_file
+            if current is None:
+                return "no file open yet"
+            if not self._guarded("closing a file", self.session.split):
+                return "the file could not be closed (see the write error)"
+        self.bus.emit(
+            logging.INFO,
+            "recorder",
+            "split",
+            f"file {current.name.removesuffix('.active')} closed on request"
+            + (f" by {who}" if who else ""),
+            by=who,
+        )
+        return f"closed {current.name.removesuffix('.active')}"
+
+    def stop_recording(self, who: str) -> str:
+        """Stop writing (files closed). Batches are still checked, counted and acked: the
+        edges owe nothing while the recorder is stopped."""
+        with self.lock:
+            if not self.recording:
+                return "already stopped"
+            assert self.session is not None
+            self._flush_and_ack()
+            self._guarded("closing the session", self.session.close)
+            self.recording = False
+            name = self.session.name
+            self._publish_view(force=True)
+        self.bus.emit(
+            logging.WARNING,
+            "recorder",
+            "recording_stopped",
+            f"recording stopped by {who or 'someone'} (session {name} closed); batches are still "
+            "counted and acked but not recorded",
+            by=who,
+            session=name,
+        )
+        return f"stopped; session {name} closed"
+
+    def start_recording(self, who: str) -> str:
+        """Start writing again, into a new session folder."""
+        with self.lock:
+            if self.recording:
+                return "already recording"
+            self.session = self._new_session()
+            self.recording = True
+            name = self.session.name
+            self._publish_view(force=True)
+        self.bus.emit(
+            logging.INFO,
+            "recorder",
+            "recording_started",
+            f"recording started by {who or 'someone'} into session {name}",
+            by=who,
+            session=name,
+        )
+        return f"recording into {name}"
 
     def summary(self) -> dict[str, Any]:
         with self.lock:

@@ -31,6 +31,7 @@ from hub.alarms.requests import AlarmRequests
 from hub.alarms.supervisor import Supervisor
 from hub.batch_feed import BatchFeed
 from hub.bus import EventBus
+from hub.commands import CommandService
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
 from hub.heartbeat import Heartbeat
@@ -41,6 +42,7 @@ from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
 from hub.router import Router
+from hub.rules import RuleEngine
 from hub.services import ServiceStack
 from hub.status import StatusService
 
@@ -105,6 +107,19 @@ class HubRuntime:
             snapshot=self.snapshot,
         )
         self.alarm_requests = AlarmRequests(self.router, self.keys, self.supervisor)
+        self.commands = CommandService(
+            self.router, site, self.bus, self.model, self.recorder, self.snapshot
+        )
+        self.rules = RuleEngine(
+            self.router,
+            site,
+            self.bus,
+            self.model,
+            self.feed,
+            self.commands,
+            self.snapshot,
+            self._record_action,
+        )
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
         self.status = StatusService(self.router, self.keys, self.snapshot)
         self.services = ServiceStack(
@@ -119,11 +134,21 @@ class HubRuntime:
                 self.hub_health,
                 self.supervisor,
                 self.alarm_requests,
+                self.commands,
+                self.rules,
                 self.heartbeat,
                 self.status,
             ]
         )
         self.started = False
+
+    def _record_action(self, action: str, who: str) -> str:
+        """A rule's `record:` action."""
+        if action == "split":
+            return self.recorder.split(who)
+        if action == "stop":
+            return self.recorder.stop_recording(who)
+        return self.recorder.start_recording(who)
 
     def _session_name(self) -> str:
         s = self.recorder.session

@@ -243,3 +243,12 @@ def test_a_good_request_is_taken_as_given():
     assert req["for_s"] == 7200.0
     assert req["names"] == ["a*"]
     assert not math.isnan(req["for_s"])
+
+
+def test_the_alarm_names_the_site_file_knows_are_the_ones_the_hub_builds():
+    from edge.config.alarms import alarm_names
+
+    site = parse_config(SITE, "s.yaml")
+    assert alarm_names(site) == {d.name for d in build_definitions(site)}
+    demo = parse_config(Path("config/demo.yaml").read_text(), "demo.yaml")
+    assert alarm_names(demo) == {d.name for d in build_definitions(demo)}

@@ -242,3 +242,32 @@ class UniversalAlarms(Strict):
         severity="major", after_s=600
     )
     """A notification has waited `after_s` without being delivered."""
+
+
+def alarm_names(site: Any) -> set[str]:
+    """Every alarm name a site has (what `hub.alarms.definitions` builds; a test keeps the two
+    equal): so rules and the CLI can be checked against them when the site file is loaded."""
+    u = site.hub.universal_alarms
+    names: set[str] = set()
+    if u.node_down:
+        names |= {f"node_down/{n}" for n in site.nodes}
+    if u.stream_stale:
+        names |= {f"stream_stale/{n}/{s}" for n, c in site.nodes.items() for s in c.streams}
+    if u.stream_gaps:
+        names |= {f"stream_gaps/{n}/{s}" for n, c in site.nodes.items() for s in c.streams}
+    if u.disk_nearly_full:
+        names |= {"disk_nearly_full/hub", *(f"disk_nearly_full/{n}" for n in site.nodes)}
+    if u.clock_unsynced:
+        names |= {f"clock_unsynced/{n}" for n, c in site.nodes.items() if c.clock.source != "none"}
+    if u.recorder:
+        names.add("recorder/hub")
+    if u.notifications_failing and site.hub.notify.groups:
+        names.add("notifications_failing/hub")
+    for name, spec in site.alarms.items():
+        if isinstance(spec, ChannelAlarm):
+            names |= {name + suffix for suffix, *_ in spec.limits()}
+            if spec.sensor_fault:
+                names.add(f"{name}.fault")
+        else:
+            names.add(name)
+    return names

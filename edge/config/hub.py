@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from edge.config.alarms import UniversalAlarms
+from edge.config.control import InterlockConfig, RuleName
 from edge.config.notify import NotifyConfig
 from edge.schema import Endpoints, Float, Int, Strict
 
@@ -47,6 +48,8 @@ class HubConfig(Strict):
     universal_alarms: UniversalAlarms = UniversalAlarms()
     """Alarms every site gets without config; tune or switch off (`false`) each."""
     notify: NotifyConfig = NotifyConfig()
+    interlocks: dict[RuleName, InterlockConfig] = {}
+    """Cross-node interlocks, evaluated on the hub (`edge.config.control`)."""
     alarm_journal: str | None = None
     """Where alarm states and the ack/shelve audit are kept across restarts (default:
     `<data_dir>/alarms.journal`)."""

@@ -19,6 +19,8 @@ from edge.errors import ConfigError
 from edge.schema import CHANNEL_NAME
 
 _ALARM_TAGS = ("channel", "stream", "node", "hub")
+_CONTROL_TAGS = ("channel", "alarm", "node", "output", "all", "any", "not", "set", "pulse",
+                 "record", "event")  # fmt: skip
 _KEY_PATH = re.compile(r"^([a-z_]+(?:\.[A-Za-z0-9_/-]+|\[\d+\])+): (.*)$", re.S)
 
 
@@ -109,6 +111,11 @@ def _user_loc(loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
             continue  # pydantic puts the union tag in the path; the user never wrote it
         if i == 2 and loc[0] == "alarms" and item in _ALARM_TAGS:
             continue  # likewise the alarm's kind
+        prev = loc[i - 1] if i else None
+        parent = loc[i - 2] if i > 1 else None
+        in_list = isinstance(prev, int) and parent in ("all", "any", "do", "on_clear")
+        if item in _CONTROL_TAGS and (prev in ("when", "precondition", "not") or in_list):
+            continue  # and a condition's or action's kind
         out.append(item)
     return tuple(out)
 

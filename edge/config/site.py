@@ -9,7 +9,8 @@ from typing import Annotated, Any
 import yaml
 from pydantic import Field, model_validator
 
-from edge.config.alarms import AlarmName, AlarmSpec
+from edge.config.alarms import AlarmName, AlarmSpec, alarm_names
+from edge.config.control import RuleConfig, RuleName, referenced
 from edge.config.hub import HubConfig
 from edge.config.node import NodeConfig
 from edge.schema import NAME, NodeName, Strict
@@ -24,6 +25,8 @@ class SiteConfig(Strict):
     nodes: Annotated[dict[NodeName, NodeConfig], Field(min_length=1)]
     alarms: dict[AlarmName, AlarmSpec] = {}
     """The site's own alarms (`edge.config.alarms`); universal ones: `hub.universal_alarms`."""
+    rules: dict[RuleName, RuleConfig] = {}
+    """Control rules evaluated on the hub (`edge.config.control`)."""
 
     @model_validator(mode="after")
     def _alarms_watch_what_exists(self) -> SiteConfig:
@@ -31,6 +34,35 @@ class SiteConfig(Strict):
             problem = _unknown_target(self, spec)
             if problem:
                 raise ValueError(f"alarms.{name}: {problem}")
+        return self
+
+    @model_validator(mode="after")
+    def _control_names_what_exists(self) -> SiteConfig:
+        names = alarm_names(self)
+        for where, cond_trees, actions, outputs in _control_parts(self):
+            for tree in cond_trees:
+                channels, alarms, nodes, outs = referenced(tree)
+                for ref in channels:
+                    problem = _unknown_target(self, _Ref(channel=ref))
+                    if problem:
+                        raise ValueError(f"{where}: {problem}")
+                for alarm in alarms:
+                    if alarm not in names:
+                        raise ValueError(f"{where}: no alarm named {alarm!r}")
+                for node in nodes:
+                    if node not in self.nodes:
+                        raise ValueError(f"{where}: no node {node!r}")
+                outputs = [*outputs, *outs]
+            for action in actions:
+                target = getattr(action, "set", None) or getattr(action, "pulse", None)
+                if target:
+                    outputs = [*outputs, target]
+            for ref in outputs:
+                node, output = ref.split("/")
+                if node not in self.nodes:
+                    raise ValueError(f"{where}: no node {node!r} (in {ref!r})")
+                if output not in getattr(self.nodes[node], "outputs", {}):
+                    raise ValueError(f"{where}: node {node!r} has no output {output!r}")
         return self
 
     def endpoints_for(self, node: str) -> list[str]:
@@ -66,3 +98,23 @@ def _unknown_target(site: SiteConfig, spec: Any) -> str | None:
     if len(parts) == 3 and parts[2] not in [c.name for c in streams[parts[1]].channels]:
         return f"stream {node}/{parts[1]} has no channel {parts[2]!r}"
     return None
+
+
+class _Ref:
+    """A reference to a channel, shaped like a channel alarm for `_unknown_target`."""
+
+    def __init__(self, channel: str) -> None:
+        self.channel = channel
+        self.stream = None
+        self.node = None
+
+
+def _control_parts(site: SiteConfig) -> list[tuple[str, list[Any], list[Any], list[str]]]:
+    """(where, condition trees, actions, output references) of every rule and interlock."""
+    out: list[tuple[str, list[Any], list[Any], list[str]]] = []
+    for name, rule in site.rules.items():
+        trees = [rule.when] + ([rule.precondition] if rule.precondition is not None else [])
+        out.append((f"rules.{name}", trees, [*rule.do, *rule.on_clear], []))
+    for name, lock in site.hub.interlocks.items():
+        out.append((f"hub.interlocks.{name}", [lock.when], [], list(lock.outputs)))
+    return out

@@ -15,7 +15,9 @@ COMMANDS: dict[str, str] = {
     "demo": "fleetdaq.cli.demo:demo",
     "edge": "fleetdaq.cli.edge:edge",
     "hub": "fleetdaq.cli.hub:hub",
+    "out": "fleetdaq.cli.out:out",
     "ptp": "fleetdaq.cli.ptp:ptp",
+    "rules": "fleetdaq.cli.rules:rules",
     "verify": "fleetdaq.cli.verify:verify",
 }
 """Sub-command -> ``"module:attribute"``, imported when the sub-command runs."""

@@ -1,0 +1,165 @@
+"""``fleetdaq out``: list the site's outputs, and set, pulse, arm or disarm one — through the hub
+(a request with a reply), which checks it, asks the edge, and records what came of it."""
+
+from __future__ import annotations
+
+import getpass
+import json
+import math
+import socket
+import sys
+from typing import Any
+
+import click
+
+from fleetdaq.cli.common import fail, load_site, open_client
+
+
+def _request(
+    config: str, connect: tuple[str, ...], body: dict[str, Any], timeout: float
+) -> dict[str, Any]:
+    from edge.keys import SiteKeys
+
+    site = load_site(config)
+    endpoints = list(connect) or list(site.hub.listen)
+    session = open_client(endpoints)
+    try:
+        key = SiteKeys(site.site).hub("out")
+        for reply in session.get(key, payload=json.dumps(body).encode(), timeout=timeout):
+            if reply.ok is not None:
+                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                return out
+    finally:
+        session.close()
+    fail(f"no hub answered at {', '.join(endpoints)} (is it running?)", 2)
+
+
+def _fmt(x: Any) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    return f"{x:.6g}" if isinstance(x, float) else str(x)
+
+
+def _common(f: Any) -> Any:
+    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
+        f
+    )
+    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
+    return f
+
+
+@click.group()
+def out() -> None:
+    """The site's outputs: list, set, pulse, arm, disarm (exit 1 on a refusal, with why)."""
+
+
+@out.command("list")
+@_common
+@click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
+def list_outputs(config: str, connect: tuple[str, ...], as_json: bool) -> None:
+    """Every output: kind, limits, safe value, value, readback, armed, interlocks."""
+    reply = _request(config, connect, {"action": "list"}, 10.0)
+    if not reply.get("ok"):
+        fail(reply.get("error", "refused"), 1)
+    rows = reply["outputs"]
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+        return
+    table = [("output", "kind", "limits", "safe", "value", "readback", "armed", "interlocks")]
+    for r in rows:
+        c, s = r["config"], r["state"] or {}
+        limits = f"{_fmt(c.get('min'))}..{_fmt(c.get('max'))} {c.get('unit', '')}".strip()
+        locks = ", ".join(s.get("interlocks", []) + ([r["interlock"]] if r["interlock"] else []))
+        armed = "safe state" if s.get("safe_state") else ("yes" if s.get("armed") else "no")
+        readback = _fmt(s.get("readback"))
+        if s and s.get("readback_source") == "last_written":
+            readback += " (written)"
+        table.append(
+            (
+                r["output"],
+                str(c.get("kind", "")),
+                limits,
+                _fmt(c.get("safe")),
+                _fmt(s.get("value")),
+                readback if r["alive"] else "(node down)",
+                armed if s else "-",
+                locks or "-",
+            )
+        )
+    widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
+    for row in table:
+        click.echo("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+
+
+def _command(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> None:
+    body = {**body, "user": getpass.getuser(), "host": socket.gethostname()}
+    reply = _request(config, connect, body, 30.0)
+    if reply.get("error"):
+        fail(f"{body['action']} {body['output']}: {reply['error']}", 2)
+    r = reply["reply"]
+    if r["applied"]:
+        readback = _fmt(r["readback"])
+        source = (
+            " (last written: no readback from this device)"
+            if r["readback_source"] == "last_written"
+            else ""
+        )
+        click.echo(f"{body['output']}: {body['action']} applied; readback {readback}{source}")
+        sys.exit(0)
+    click.echo(
+        f"{body['output']}: {body['action']} refused: {r['refusal']}: {r['message']}", err=True
+    )
+    sys.exit(1)
+
+
+@out.command("set")
+@_common
+@click.argument("output")
+@click.argument("value", type=float)
+@click.option("--reason", default="", help="Why (recorded with the command).")
+def set_output(
+    config: str, connect: tuple[str, ...], output: str, value: float, reason: str
+) -> None:
+    """Set NODE/OUTPUT to VALUE."""
+    _command(config, connect, {"action": "set", "output": output, "value": value, "reason": reason})
+
+
+@out.command()
+@_common
+@click.argument("output")
+@click.option(
+    "--for",
+    "for_s",
+    type=click.FloatRange(min=0, min_open=True, max=3600),
+    required=True,
+    help="Seconds.",
+)
+@click.option("--value", type=float, default=1.0, show_default=True, help="Held during the pulse.")
+@click.option("--reason", default="")
+def pulse(
+    config: str, connect: tuple[str, ...], output: str, for_s: float, value: float, reason: str
+) -> None:
+    """Pulse NODE/OUTPUT: VALUE for --for seconds, then back to what it was."""
+    _command(
+        config,
+        connect,
+        {"action": "pulse", "output": output, "value": value, "pulse_s": for_s, "reason": reason},
+    )
+
+
+@out.command()
+@_common
+@click.argument("output")
+@click.option("--reason", default="")
+def arm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:
+    """Arm NODE/OUTPUT (needed before commands, and after a safe state)."""
+    _command(config, connect, {"action": "arm", "output": output, "reason": reason})
+
+
+@out.command()
+@_common
+@click.argument("output")
+@click.option("--reason", default="")
+def disarm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:
+    """Disarm NODE/OUTPUT (it refuses set and pulse until armed again)."""
+    _command(config, connect, {"action": "disarm", "output": output, "reason": reason})

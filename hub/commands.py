@@ -1,0 +1,341 @@
+"""Commands to the nodes' outputs, through the hub: the only way an output is driven.
+
+Operators (``fleetdaq out ...``: a JSON request on ``fleetdaq/<site>/hub/out``) and rules (in
+this process) ask `CommandService.send`; it checks the output exists in the site file and
+that no hub interlock holds it, sends an `OutputCommand` to the edge's queryable
+(``fleetdaq/<site>/<node>/out/<output>``), waits for the `OutputReply` (or times out), and
+records the pair as a `CommandRecord` on ``/<node>/commands`` and as an event. Sending blocks
+only the caller's thread: operators' requests run on a small pool, never on a Zenoh callback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from edge.cdr import decode, encode
+from edge.config.site import SiteConfig
+from edge.errors import WireError
+from edge.keys import SiteKeys
+from edge.messages import (
+    ACTIONS,
+    COMMAND_RECORD_TYPE,
+    CommandRecord,
+    OutputCommand,
+    OutputReply,
+)
+from hub.bus import EventBus
+from hub.read_model import HubView, ReadModel, to_jsonable
+from hub.recorder import Recorder
+from hub.router import Router
+
+log = logging.getLogger("fleetdaq.commands")
+
+MAX_REQUEST_BYTES = 64 * 1024
+Blocked = Callable[[str, str], str | None]
+"""blocked(node, output): the name of a hub interlock holding that output, or None."""
+
+
+def refused(cmd: OutputCommand, refusal: str, message: str) -> OutputReply:
+    return OutputReply(
+        command_id=cmd.command_id, output=cmd.output, action=cmd.action, applied=False,
+        refusal=refusal, message=message, requested=cmd.value, readback=math.nan,
+        readback_ns=0, readback_source="", armed=False, safe_state=False, interlocks=(),
+        replied_ns=time.time_ns(),
+    )  # fmt: skip
+
+
+class CommandService:
+    name = "commands"
+
+    def __init__(
+        self,
+        router: Router,
+        site: SiteConfig,
+        bus: EventBus,
+        model: ReadModel,
+        recorder: Recorder,
+        snapshot: Callable[[], HubView],
+        timeout_s: float = 5.0,
+    ) -> None:
+        self.router = router
+        self.site = site
+        self.keys = SiteKeys(site.site)
+        self.bus = bus
+        self.model = model
+        self.recorder = recorder
+        self.snapshot = snapshot
+        self.timeout_s = timeout_s
+        self.blocked: Blocked = lambda node, output: None
+        """Set by the rules engine: the hub's cross-node interlocks."""
+        self.sent = 0
+        self.applied = 0
+        self.refused = 0
+        self.timeouts = 0
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="commands")
+        self._queryable: Any = None
+
+    # --- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._queryable = self.router.session.declare_queryable(
+            self.keys.hub("out"), self._on_query
+        )
+
+    def stop(self) -> None:
+        if self._queryable is not None:
+            self._queryable.undeclare()
+            self._queryable = None
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def failure(self) -> str | None:
+        return None
+
+    # --- sending --------------------------------------------------------------------------------
+
+    def outputs(self) -> dict[str, Any]:
+        """Every output of the site: ``node/output`` -> its config."""
+        out: dict[str, Any] = {}
+        for node, cfg in self.site.nodes.items():
+            for name, ocfg in getattr(cfg, "outputs", {}).items():
+                out[f"{node}/{name}"] = ocfg
+        return out
+
+    def send(
+        self,
+        node: str,
+        output: str,
+        action: str,
+        value: float = math.nan,
+        pulse_s: float = 0.0,
+        sender: str = "operator",
+        who: str = "",
+        reason: str = "",
+        command_id: str | None = None,
+        unblocked: bool = False,
+    ) -> tuple[OutputCommand, OutputReply]:
+        """Command one output and wait for its reply (at most `timeout_s`). Never raises for
+        what the edge or the network does: a refusal or a timeout is in the reply.
+        `unblocked`: an interlock's own command (putting its outputs safe) passes it."""
+        cmd = OutputCommand(
+            command_id=command_id or uuid.uuid4().hex,
+            output=output,
+            action=action,
+            value=float(value),
+            pulse_s=float(pulse_s),
+            sender=sender,
+            who=who,
+            reason=reason,
+            issued_ns=time.time_ns(),
+            max_age_s=0.0,
+        )
+        sent_ns = time.time_ns()
+        if f"{node}/{output}" not in self.outputs():
+            reply = refused(cmd, "unknown_output", f"the site file has no output {node}/{output}")
+        elif (
+            action in ("set", "pulse")
+            and not unblocked
+            and (lock := self.blocked(node, output)) is not None
+        ):
+            reply = refused(cmd, "interlock", f"interlock {lock} active")
+        else:
+            reply = self._ask(node, cmd)
+        self._record(node, cmd, reply, sent_ns)
+        return cmd, reply
+
+    def send_unblocked(
+        self,
+        node: str,
+        output: str,
+        action: str,
+        value: float,
+        pulse_s: float,
+        sender: str,
+        who: str,
+        reason: str,
+    ) -> tuple[OutputCommand, OutputReply]:
+        return self.send(node, output, action, value, pulse_s, sender, who, reason, None, True)
+
+    def _ask(self, node: str, cmd: OutputCommand) -> OutputReply:
+        key = self.keys.out(node, cmd.output)
+        try:
+            replies = self.router.session.get(key, payload=encode(cmd), timeout=self.timeout_s)
+            for r in replies:
+                if r.ok is None:
+                    continue
+                try:
+                    reply = decode(r.ok.payload.to_bytes(), OutputReply)
+                except WireError as err:
+                    return refused(cmd, "timeout", f"{node} answered with something else: {err}")
+                if reply.command_id != cmd.command_id:
+                    return refused(cmd, "timeout", f"{node} answered another command")
+                return reply
+        except Exception as err:  # the network, not the command: a timeout for the caller
+            log.warning("command to %s/%s: %s", node, cmd.output, err)
+            return refused(cmd, "timeout", f"could not ask {node}: {err}")
+        return refused(cmd, "timeout", f"{node} did not answer within {self.timeout_s:g} s")
+
+    def _record(self, node: str, cmd: OutputCommand, reply: OutputReply, sent_ns: int) -> None:
+        now = time.time_ns()
+        with self._lock:
+            self.sent += 1
+            if reply.applied:
+                self.applied += 1
+            else:
+                self.refused += 1
+                self.timeouts += reply.refusal == "timeout"
+        record = CommandRecord(cmd, reply, node, sent_ns, now)
+        self.recorder.record(f"/{node}/commands", encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
+        what = f"{cmd.action} {cmd.value:g}" if cmd.action in ("set", "pulse") else cmd.action
+        by = f"{cmd.sender} {cmd.who}".strip()
+        if reply.applied:
+            readback = (
+                ""
+                if math.isnan(reply.readback)
+                else f", readback {reply.readback:g} ({reply.readback_source})"
+            )
+            text = f"{node}/{cmd.output}: {what} applied{readback} — by {by}"
+        else:
+            text = (
+                f"{node}/{cmd.output}: {what} refused: {reply.refusal}: {reply.message} — by {by}"
+            )
+        if cmd.reason:
+            text += f"; reason: {cmd.reason}"
+        self.bus.emit(
+            logging.INFO if reply.applied else logging.WARNING,
+            "commands",
+            "command_applied" if reply.applied else "command_refused",
+            text,
+            command_id=cmd.command_id,
+            node=node,
+            output=cmd.output,
+            action=cmd.action,
+            value=cmd.value,
+            sender=cmd.sender,
+            who=cmd.who,
+            refusal=reply.refusal,
+        )
+        self.model.put(
+            "commands",
+            {"sent": self.sent, "applied": self.applied, "refused": self.refused,
+             "timeouts": self.timeouts},
+        )  # fmt: skip
+
+    # --- operators' requests ----------------------------------------------------------------
+
+    def handle(self, raw: bytes) -> dict[str, Any]:
+        """One operator request (JSON) -> its answer (JSON-ready). Blocks while the edge is
+        asked: run it on a worker thread."""
+        try:
+            req = self._parse(raw)
+        except ValueError as err:
+            return {"ok": False, "error": str(err)}
+        if req["action"] == "list":
+            return {"ok": True, "error": "", "outputs": self.listing()}
+        node, output = req["output"].split("/", 1)
+        cmd, reply = self.send(
+            node,
+            output,
+            req["action"],
+            req["value"],
+            req["pulse_s"],
+            "operator",
+            f"{req['user']}@{req['host']}",
+            req["reason"],
+            req["command_id"],
+        )
+        return {"ok": reply.applied, "error": "", "command": to_jsonable(cmd),
+                "reply": to_jsonable(reply)}  # fmt: skip
+
+    @staticmethod
+    def _parse(raw: bytes) -> dict[str, Any]:
+        if len(raw) > MAX_REQUEST_BYTES:
+            raise ValueError(f"a request of {len(raw)} bytes (at most {MAX_REQUEST_BYTES})")
+        try:
+            req = json.loads(raw or b"{}")
+        except (ValueError, RecursionError):
+            raise ValueError("the request is not JSON") from None
+        if not isinstance(req, dict):
+            raise ValueError("the request is not a JSON object")
+        allowed = {"action", "output", "value", "pulse_s", "reason", "user", "host", "command_id"}
+        unknown = set(req) - allowed
+        if unknown:
+            raise ValueError(f"unknown field(s): {', '.join(sorted(unknown))}")
+        action = req.get("action", "list")
+        if action != "list" and action not in ACTIONS:
+            raise ValueError(f"unknown action {action!r} (one of list, {', '.join(ACTIONS)})")
+        out: dict[str, Any] = {"action": action}
+        if action == "list":
+            return out
+        output = req.get("output")
+        if not isinstance(output, str) or output.count("/") != 1 or len(output) > 200:
+            raise ValueError("output must be NODE/OUTPUT")
+        out["output"] = output
+        for key, default in (("value", math.nan), ("pulse_s", 0.0)):
+            v = req.get(key, default)
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not math.isfinite(v if key != "value" or action in ("set", "pulse") else 0.0)
+            ):
+                raise ValueError(f"{key} must be a finite number")
+            out[key] = float(v)
+        if action in ("set", "pulse") and math.isnan(out["value"]):
+            raise ValueError(f"{action} needs a value")
+        if action == "pulse" and not 0 < out["pulse_s"] <= 3600:
+            raise ValueError("a pulse lasts more than 0 s and at most 3600 s")
+        for key, limit in (("reason", 500), ("user", 100), ("host", 255), ("command_id", 128)):
+            v = req.get(key, "")
+            if not isinstance(v, str) or len(v) > limit:
+                raise ValueError(f"{key} must be text of at most {limit} characters")
+            out[key] = v
+        out["user"] = out["user"] or "unknown"
+        out["host"] = out["host"] or "unknown"
+        out["command_id"] = out["command_id"] or None
+        return out
+
+    def listing(self) -> list[dict[str, Any]]:
+        """Every output: its config, and what its node last said about it (health)."""
+        view = self.snapshot()
+        states: dict[str, Any] = {}
+        for n in view.nodes:
+            if n.health is not None:
+                for o in n.health.outputs:
+                    states[f"{n.node}/{o.name}"] = o
+        rows = []
+        for ref, cfg in sorted(self.outputs().items()):
+            node, output = ref.split("/", 1)
+            state = states.get(ref)
+            rows.append(
+                {
+                    "output": ref,
+                    "config": to_jsonable(cfg.model_dump(mode="json")),
+                    "state": to_jsonable(state) if state is not None else None,
+                    "alive": any(n.node == node and n.alive for n in view.nodes),
+                    "interlock": self.blocked(node, output),
+                }
+            )
+        return rows
+
+    def _on_query(self, query: Any) -> None:
+        payload = query.payload
+        raw = payload.to_bytes() if payload is not None else b""
+
+        def answer() -> None:
+            try:
+                reply = self.handle(raw)
+                query.reply(self.keys.hub("out"), json.dumps(to_jsonable(reply)).encode())
+            except Exception:  # one request must never take the service down
+                log.exception("answering an output request failed")
+
+        with contextlib.suppress(RuntimeError):  # the pool is shutting down: the hub stops
+            self._pool.submit(answer)
