@@ -39,7 +39,8 @@ class SiteConfig(Strict):
     @model_validator(mode="after")
     def _control_names_what_exists(self) -> SiteConfig:
         names = alarm_names(self)
-        for where, cond_trees, actions, outputs in _control_parts(self):
+        for where, cond_trees, actions, named in _control_parts(self):
+            outputs = list(named)
             for tree in cond_trees:
                 channels, alarms, nodes, outs = referenced(tree)
                 for ref in channels:
@@ -52,11 +53,11 @@ class SiteConfig(Strict):
                 for node in nodes:
                     if node not in self.nodes:
                         raise ValueError(f"{where}: no node {node!r}")
-                outputs = [*outputs, *outs]
+                outputs += outs
             for action in actions:
                 target = getattr(action, "set", None) or getattr(action, "pulse", None)
                 if target:
-                    outputs = [*outputs, target]
+                    outputs.append(target)
             for ref in outputs:
                 node, output = ref.split("/")
                 if node not in self.nodes:
