@@ -207,6 +207,7 @@ class Assembler:
         _fill_times(time_ns, t0, period, first, rows)
         if not len(data):
             data = np.empty((0, len(self.names or ())), dtype=np.float64)
+        gaps, steps = find_gaps(seq, t0, scans, period)
         return StreamData(
             node=self.node,
             stream=self.stream,
@@ -216,7 +217,8 @@ class Assembler:
             data=data,
             status=status,
             batches=BatchTable(seq, t0, scans, rows, period, state, offset, tuple(gm)),
-            gaps=tuple(find_gaps(seq, t0, scans, period)),
+            gaps=tuple(gaps),
+            time_steps=tuple(steps),
             duplicates=self.duplicates,
             files=tuple(self.files),
             skipped=tuple(skipped),
@@ -256,15 +258,23 @@ def find_gaps(
     t0: npt.NDArray[np.int64],
     scans: npt.NDArray[np.int64],
     period: npt.NDArray[np.float64],
-) -> list[Gap]:
-    """Gaps between consecutive batches (in time order): skipped sequences, time jumps
-    between contiguous sequences (more than 1.5 periods), time going back, sequence resets."""
+) -> tuple[list[Gap], list[Gap]]:
+    """(gaps, time steps) between consecutive batches in time order.
+
+    Gaps: skipped sequences (``missing``), a sequence starting again (``sequence_reset``), and
+    contiguous sequences with at least a batch's worth of time between them (``acquisition``:
+    the edge restarted, the device stopped). Time steps: contiguous sequences whose times
+    disagree by more than 1.5 sample periods but less than a batch (``forward``), or go back
+    (``back``): the clock fit or the host clock moved; no scan is missing.
+    """
     if len(seq) < 2:
-        return []
-    prev_end = t0[:-1] + np.rint(scans[:-1] * period[:-1]).astype(np.int64)
+        return [], []
+    duration = np.rint(scans[:-1] * period[:-1]).astype(np.int64)
+    prev_end = t0[:-1] + duration
     dseq = seq[1:].astype(np.int64) - seq[:-1].astype(np.int64)
     dt = t0[1:] - prev_end
     gaps: list[Gap] = []
+    steps: list[Gap] = []
     for i in np.flatnonzero(dseq > 1):
         gaps.append(
             Gap("missing", int(prev_end[i]), int(t0[i + 1]), int(dseq[i] - 1), int(seq[i]) + 1)
@@ -272,9 +282,25 @@ def find_gaps(
     for i in np.flatnonzero(dseq <= 0):
         gaps.append(Gap("sequence_reset", int(prev_end[i]), int(t0[i + 1])))
     contiguous = dseq == 1
-    for i in np.flatnonzero(contiguous & (dt > 1.5 * period[:-1])):
+    forward = contiguous & (dt > 1.5 * period[:-1])
+    for i in np.flatnonzero(forward & (dt >= duration)):
         gaps.append(Gap("acquisition", int(prev_end[i]), int(t0[i + 1])))
-    for i in np.flatnonzero(contiguous & (dt < -0.5 * period[:-1])):
-        gaps.append(Gap("overlap", int(t0[i + 1]), int(prev_end[i])))
+    for i in np.flatnonzero(forward & (dt < duration)):
+        steps.append(Gap("forward", int(prev_end[i]), int(t0[i + 1])))
+    for i in np.flatnonzero(contiguous & (dt < -1.5 * period[:-1])):
+        steps.append(Gap("back", int(t0[i + 1]), int(prev_end[i])))
     gaps.sort(key=lambda g: g.start_ns)
-    return gaps
+    steps.sort(key=lambda g: g.start_ns)
+    return gaps, steps
+
+
+def gaps_between(before: BatchTable, after: BatchTable) -> tuple[list[Gap], list[Gap]]:
+    """(gaps, time steps) between the last batch of one piece and the first of the next."""
+    if not len(before) or not len(after):
+        return [], []
+    return find_gaps(
+        np.array([before.sequence[-1], after.sequence[0]], dtype=np.uint64),
+        np.array([before.first_sample_time_ns[-1], after.first_sample_time_ns[0]]),
+        np.array([before.scan_count[-1], after.scan_count[0]]),
+        np.array([before.sample_period_ns[-1], after.sample_period_ns[0]]),
+    )

@@ -29,7 +29,3 @@ class BadWindow(AnalysisError):
 
 class DamagedRecording(AnalysisError):
     """A file could not be read (the message names it; `fleetdaq verify` says more)."""
-
-
-class NotModaqConfig(AnalysisError):
-    """The file is not a MODAQ 2 configuration (or has nothing fleetdaq can use)."""

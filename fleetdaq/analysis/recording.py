@@ -26,7 +26,7 @@ from edge.messages import (
     Event,
     NodeHealth,
 )
-from edge.wire import SAMPLE_BATCH_TYPE, read_header
+from edge.wire import SAMPLE_BATCH_TYPE, BatchHeader, read_header
 from fleetdaq.analysis.assemble import Assembler
 from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
 from fleetdaq.analysis.files import RecordedFile, Source, find_files, load_file, read_attachment
@@ -222,7 +222,7 @@ class Recording:
         a, b = self.window(start, end)
         with ThreadPoolExecutor(WORKERS, thread_name_prefix="fleetdaq-read") as pool:
             files = self.files_for(info.topic, a, b, pool)
-            return self._assemble(info, files, a, b, channels, pool)
+            return self.read_files(info, files, a, b, channels, pool)
 
     def pieces(
         self,
@@ -238,19 +238,23 @@ class Recording:
         a, b = self.window(start, end)
         with ThreadPoolExecutor(WORKERS, thread_name_prefix="fleetdaq-read") as pool:
             for group in self.groups(info.topic, a, b, pool):
-                piece = self._assemble(info, group, a, b, channels, pool)
+                piece = self.read_files(info, group, a, b, channels, pool)
                 if len(piece):
                     yield piece
 
-    def _assemble(
+    def read_files(
         self,
         info: StreamInfo,
         files: list[RecordedFile],
         start: int | None,
         end: int | None,
-        channels: Sequence[str] | str | None,
-        pool: ThreadPoolExecutor,
+        channels: Sequence[str] | str | None = None,
+        pool: ThreadPoolExecutor | None = None,
     ) -> StreamData:
+        """`info`'s batches in `files` (of this recording), in [start, end) (ns)."""
+        if pool is None:
+            with ThreadPoolExecutor(WORKERS, thread_name_prefix="fleetdaq-read") as own:
+                return self.read_files(info, files, start, end, channels, own)
         wanted = [channels] if isinstance(channels, str) else channels
         hint = sum(f.counts.get(info.topic, 0) for f in files)
         asm = Assembler(info.node, info.stream, wanted, start, end, hint)
@@ -263,19 +267,27 @@ class Recording:
                 raise DamagedRecording(f"{f.path}: a {info.topic} batch: {err}") from err
             asm.files.append(f.path)
         if asm.names is None:  # nothing in the window: still name the columns (and check them)
-            names, units = self._layout(info.topic)
+            names, units = self.layout(info.topic)
             asm.layout_from(names, units)
         return asm.result(self.skipped)
 
-    def _layout(self, topic: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    def layout(self, topic: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """The channel names and units of the stream on `topic` (from its first batch)."""
+        h = self.first_batch(topic)
+        return ((), ()) if h is None else (h.channel_names, h.channel_units)
+
+    def first_batch(self, topic: str) -> BatchHeader | None:
+        """The header of the first batch recorded on `topic` (reads one chunk)."""
         for f in self.files:
             cid = f.channel_ids.get(topic)
             if cid is None:
                 continue
             for _, _, _, payload in iter_messages(f.path, f.summary, (cid,)):
-                h = read_header(payload)
-                return h.channel_names, h.channel_units
-        return (), ()
+                try:
+                    return read_header(payload)
+                except WireError as err:
+                    raise DamagedRecording(f"{f.path}: a {topic} batch: {err}") from err
+        return None
 
     def messages(
         self, topics: set[str], start: int | None = None, end: int | None = None

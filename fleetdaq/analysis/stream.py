@@ -25,11 +25,14 @@ class Gap:
     kind:
         ``missing``: batches that never reached the recording (sequence numbers skipped;
         `missing_batches` says how many, from `first_missing_sequence`).
-        ``acquisition``: consecutive batches, but time jumps (the edge restarted, the device
-        stopped): nothing was acquired in between.
-        ``overlap``: time went back between consecutive batches (a clock step).
+        ``acquisition``: consecutive batches at least a batch's length apart in time (the edge
+        restarted, the device stopped): nothing was acquired in between.
         ``sequence_reset``: the sequence started again (the edge's spool was wiped).
-    `start_ns` is just after the last scan before the gap, `end_ns` the first scan after it.
+    A time step (`StreamData.time_steps`) has kind ``forward`` or ``back``: consecutive batches
+    whose times disagree by more than 1.5 sample periods but less than a batch (the clock fit
+    or the host clock moved; no scan is missing).
+    `start_ns` is just after the last scan before it, `end_ns` the first scan after it (for
+    ``back``, the other way round).
     """
 
     kind: str
@@ -96,6 +99,9 @@ class StreamData:
     """(scans, channels) codes (0 = valid), None when every sample was valid."""
     batches: BatchTable
     gaps: tuple[Gap, ...]
+    """Where data is missing (see `Gap`)."""
+    time_steps: tuple[Gap, ...]
+    """Where time moved between consecutive batches without data missing."""
     duplicates: int
     """Batches dropped because the same batch (sequence and time) was already read."""
     files: tuple[Path, ...]
@@ -161,6 +167,7 @@ class StreamData:
             "units": dict(zip(self.channels, self.units, strict=True)),
             "sample_rate_hz": self.sample_rate_hz,
             "gaps": [g.as_dict() for g in self.gaps],
+            "time_steps": len(self.time_steps),
             "files": [str(p) for p in self.files],
         }
 

@@ -13,8 +13,11 @@ COMMANDS: dict[str, str] = {
     "check": "fleetdaq.cli.check:check",
     "demo": "fleetdaq.cli.demo:demo",
     "edge": "fleetdaq.cli.edge:edge",
+    "export": "fleetdaq.cli.export:export",
     "hub": "fleetdaq.cli.hub:hub",
+    "import-modaq": "fleetdaq.cli.import_modaq:import_modaq",
     "ptp": "fleetdaq.cli.ptp:ptp",
+    "report": "fleetdaq.cli.report:report",
     "verify": "fleetdaq.cli.verify:verify",
 }
 """Sub-command -> ``"module:attribute"``, imported when the sub-command runs."""
