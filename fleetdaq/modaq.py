@@ -64,12 +64,8 @@ class _Import:
 
 def _q(value: Any) -> str:
     """A YAML scalar or flow sequence, quoted where YAML needs it."""
-    return (
-        yaml.safe_dump(value, default_flow_style=True, width=1000)
-        .strip()
-        .removesuffix("...")
-        .strip()
-    )
+    text = yaml.safe_dump(value, default_flow_style=True, width=1000, sort_keys=False)
+    return text.strip().removesuffix("...").strip()
 
 
 def _name(raw: str, pattern: str, fallback: str) -> str:

@@ -17,14 +17,20 @@ class Envelope:
     def __init__(self, start_ns: int, end_ns: int, bins: int, channels: int) -> None:
         if end_ns <= start_ns:
             end_ns = start_ns + 1
-        self.edges = np.linspace(start_ns, end_ns, bins + 1).round().astype(np.int64)
+        # Offsets from the start, not epoch ns, go through floats (an epoch in ns needs 61 bits).
+        step = (end_ns - start_ns) / bins
+        self.edges: npt.NDArray[np.int64] = start_ns + np.rint(np.arange(bins + 1) * step).astype(
+            np.int64
+        )
+        self.edges[-1] = end_ns
         self.lo = np.full((bins, channels), np.nan)
         self.hi = np.full((bins, channels), np.nan)
         self.scans = np.zeros(bins, dtype=np.int64)
 
     @property
     def centers_ns(self) -> npt.NDArray[np.int64]:
-        return (self.edges[:-1] + (self.edges[1:] - self.edges[:-1]) // 2).astype(np.int64)
+        half: npt.NDArray[np.int64] = (self.edges[1:] - self.edges[:-1]) // 2
+        return self.edges[:-1] + half
 
     @property
     def bin_s(self) -> float:

@@ -71,6 +71,32 @@ def make_batches(
     ]
 
 
+Extra = tuple[int, str, bytes, str] | tuple[int, str, bytes, str, int]
+"""(log time, topic, payload, type[, publish time]): publish defaults to the log time."""
+
+
+def stream_messages(
+    batches: list[Batch],
+    node: str,
+    stream: str,
+    channels: tuple[str, ...],
+    units: tuple[str, ...],
+    receive_delay_ns: int = 5_000_000,
+) -> list[Extra]:
+    """`batches` of another stream as extra messages for `write_session`."""
+    enc = BatchEncoder(node, stream, channels, units)
+    return [
+        (
+            b.t0_ns + receive_delay_ns,
+            f"/{node}/{stream}",
+            bytes(enc.encode(b.sequence, b.t0_ns, b.period_ns, b.data, b.clock, b.status)),
+            "fleetdaq_msgs/msg/SampleBatch",
+            b.t0_ns,
+        )
+        for b in batches
+    ]
+
+
 def write_session(
     root: Path,
     batches: list[Batch],
@@ -83,27 +109,25 @@ def write_session(
     units: tuple[str, ...] = UNITS,
     log_ns: list[int] | None = None,
     start_ns: int | None = None,
-    extra: list[tuple[int, str, bytes, str]] | None = None,
+    extra: list[Extra] | None = None,
 ) -> RecordingSession:
     """A closed session under `root` holding `batches` on ``/node/stream`` (received
-    `receive_delay_ns` after acquisition, or at `log_ns`), plus `extra` messages (log time,
-    topic, payload, type), all written in log-time order."""
+    `receive_delay_ns` after acquisition, or at `log_ns`), plus `extra` messages, all written
+    in log-time order."""
     cfg = RecorderConfig(file_duration_s=file_duration_s, chunk_size=64 * 1024)
     first = start_ns if start_ns is not None else (batches[0].t0_ns if batches else T0)
     s = RecordingSession(root, "demo", [node], cfg, f"site: demo\nnodes: [{node}]\n", first)
-    enc = BatchEncoder(
-        node,
-        stream,
-        channels[: batches[0].data.shape[1]] if batches else channels,
-        units[: batches[0].data.shape[1]] if batches else units,
-    )
+    width = batches[0].data.shape[1] if batches else len(channels)
+    enc = BatchEncoder(node, stream, channels[:width], units[:width])
     items: list[tuple[int, str, bytes, int, str]] = []
     for i, b in enumerate(batches):
         payload = bytes(enc.encode(b.sequence, b.t0_ns, b.period_ns, b.data, b.clock, b.status))
         recv = log_ns[i] if log_ns is not None else b.t0_ns + receive_delay_ns
         items.append((recv, f"/{node}/{stream}", payload, b.t0_ns, "fleetdaq_msgs/msg/SampleBatch"))
-    for recv, topic, payload, msgtype in extra or []:
-        items.append((recv, topic, payload, recv, msgtype))
+    for item in extra or []:
+        recv, topic, payload, msgtype = item[:4]
+        publish = item[4] if len(item) == 5 else recv
+        items.append((recv, topic, payload, publish, msgtype))
     items.sort(key=lambda x: x[0])
     for recv, topic, payload, publish, msgtype in items:
         s.write(topic, payload, publish, recv, msgtype)
