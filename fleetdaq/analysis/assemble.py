@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from edge.wire import decode_batch
+from edge.wire import BatchDecoder
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
 from fleetdaq.analysis.window import format_ns
@@ -82,6 +82,7 @@ class Assembler:
         self._offset: list[int] = []
         self._gm: list[str] = []
         self.files: list[Path] = []
+        self._decoder = BatchDecoder()
 
     # --- intake ------------------------------------------------------------------------------
 
@@ -131,7 +132,7 @@ class Assembler:
 
     def add(self, payload: memoryview | bytes) -> None:
         """One recorded SampleBatch payload (raises `edge.errors.WireError` if not one)."""
-        batch = decode_batch(payload)
+        batch = self._decoder.decode(payload)
         h = batch.header
         key = (h.sequence, h.first_sample_time_ns)
         if key in self._seen:

@@ -35,13 +35,15 @@ from edge import __version__
 from fleetdaq.analysis.assemble import gaps_between
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.recording import Recording, StreamInfo
-from fleetdaq.analysis.stream import Gap, StreamData
+from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
 from fleetdaq.analysis.window import format_ns
 
 FORMATS = ("parquet", "hdf5", "csv", "netcdf")
 METADATA_DIR = "_fleetdaq"
 """Per-stream JSON and ``summary.json`` of a directory export. The leading underscore keeps it
 out of Parquet dataset discovery: ``pd.read_parquet(OUT)`` reads the data files only."""
+PARQUET_ROW_GROUP = 1 << 20
+"""Scans per Parquet row group (8 MB per float64 channel)."""
 Progress = Callable[[int], None]
 """Called with the number of recorded batches just done (the total is `planned_batches`)."""
 
@@ -159,7 +161,7 @@ def run_export(plan: ExportPlan, progress: Progress | None = None) -> list[Strea
     rec = plan.recording
     for info, channels in plan.streams:
         exp = StreamExport(info, channels or ())
-        previous: StreamData | None = None
+        previous: BatchTable | None = None  # the last piece's batches (not its samples)
         for group in rec.groups(info.topic, plan.start, plan.end):
             piece = rec.read_files(info, group, plan.start, plan.end, channels)
             if progress is not None:
@@ -172,7 +174,7 @@ def run_export(plan: ExportPlan, progress: Progress | None = None) -> list[Strea
                 exp.first_ns = int(piece.time_ns[0])
                 writer.begin(exp, piece)
             else:
-                gaps, steps = gaps_between(previous.batches, piece.batches)
+                gaps, steps = gaps_between(previous, piece.batches)
                 exp.gaps += gaps
                 exp.time_steps += steps
             exp.gaps += piece.gaps
@@ -182,7 +184,8 @@ def run_export(plan: ExportPlan, progress: Progress | None = None) -> list[Strea
             exp.duplicates += piece.duplicates
             exp.last_ns = int(piece.time_ns[-1])
             writer.piece(exp, piece, group[0].path)
-            previous = piece
+            previous = piece.batches
+            del piece
         if previous is not None:
             writer.end(exp)
             exports.append(exp)
@@ -246,14 +249,35 @@ class _ParquetWriter:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        table = pa.Table.from_pandas(piece.to_pandas(), preserve_index=True)
+        name = safe_name(exp.info)
+        folder = self.plan.out / f"channel={name}"
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"{source.stem}.{name}.parquet"
+        frame = piece.to_pandas()
+        writer = None
+        try:
+            # Row groups of a bounded size: the columns are copied for Arrow a slice at a time.
+            for at in range(0, len(frame), PARQUET_ROW_GROUP):
+                table = pa.Table.from_pandas(frame.iloc[at : at + PARQUET_ROW_GROUP])
+                table = table.cast(self._schema(exp, piece, table.schema))
+                if writer is None:
+                    writer = pq.ParquetWriter(path, table.schema)
+                writer.write_table(table)
+        finally:
+            if writer is not None:
+                writer.close()
+        exp.files.append(path)
+
+    def _schema(self, exp: StreamExport, piece: StreamData, schema: Any) -> Any:
+        import pyarrow as pa
+
         fields = [
             f.with_metadata({b"unit": exp.units[exp.channels.index(f.name)].encode()})
             if f.name in exp.channels
             else f.with_metadata({b"timezone": b"UTC"})
-            for f in table.schema
+            for f in schema
         ]
-        meta = dict(table.schema.metadata or {})
+        meta = dict(schema.metadata or {})
         meta[b"fleetdaq"] = json.dumps(
             {
                 "node": exp.info.node,
@@ -262,13 +286,7 @@ class _ParquetWriter:
                 "source_files": [str(p) for p in piece.files],
             }
         ).encode()
-        table = table.cast(pa.schema(fields, metadata=meta))
-        name = safe_name(exp.info)
-        folder = self.plan.out / f"channel={name}"
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"{source.stem}.{name}.parquet"
-        pq.write_table(table, path)
-        exp.files.append(path)
+        return pa.schema(fields, metadata=meta)
 
     def end(self, exp: StreamExport) -> None:
         pass

@@ -48,19 +48,20 @@ def _decompress(compression: str, body: memoryview, size: int) -> bytes:
 def _load_chunk(path: Path, fd: int, offset: int, length: int) -> bytes:
     """The records of the chunk record at `offset` (decompressed)."""
     try:
-        raw = os.pread(fd, length, offset)
+        # pread, not mmap: a mapped file's pages would count in this process's RSS.
+        raw = memoryview(os.pread(fd, length, offset))
         if len(raw) != length or raw[0] != _OP_CHUNK:
             raise ValueError("no chunk record where the summary says")
         _, _, size, _ = _CHUNK_HEAD.unpack_from(raw, 9)
         p = 9 + _CHUNK_HEAD.size
         (n,) = struct.unpack_from("<I", raw, p)
-        compression = raw[p + 4 : p + 4 + n].decode()
+        compression = bytes(raw[p + 4 : p + 4 + n]).decode()
         p += 4 + n
         (records_len,) = struct.unpack_from("<Q", raw, p)
         p += 8
         if p + records_len > len(raw):
             raise ValueError("chunk records run past the chunk")
-        records = _decompress(compression, memoryview(raw)[p : p + records_len], size)
+        records = _decompress(compression, raw[p : p + records_len], size)
     except Exception as err:  # zstd/lz4/struct/os errors: all mean this chunk cannot be read
         raise DamagedRecording(
             f"{path}: chunk at byte {offset} cannot be read ({type(err).__name__}: {err});"
@@ -112,36 +113,44 @@ def iter_messages(
         key=lambda ci: ci.chunk_start_offset,
     )
     with path.open("rb") as fh:
-        fd = fh.fileno()
-        if pool is None:
-            for ci in chunks:
-                yield from _messages(
-                    _load_chunk(path, fd, ci.chunk_start_offset, ci.chunk_length), ids
-                )
-            return
-        pending: deque[Future[bytes]] = deque()
-        todo = iter(chunks)
-        try:
-            for ci in todo:
+        yield from _chunks(path, fh.fileno(), chunks, ids, pool, prefetch)
+
+
+def _chunks(
+    path: Path,
+    fd: int,
+    chunks: list[Any],
+    ids: frozenset[int],
+    pool: ThreadPoolExecutor | None,
+    prefetch: int,
+) -> Iterator[RawMessage]:
+    if pool is None:
+        for ci in chunks:
+            yield from _messages(_load_chunk(path, fd, ci.chunk_start_offset, ci.chunk_length), ids)
+        return
+    pending: deque[Future[bytes]] = deque()
+    todo = iter(chunks)
+    try:
+        for ci in todo:
+            pending.append(
+                pool.submit(_load_chunk, path, fd, ci.chunk_start_offset, ci.chunk_length)
+            )
+            if len(pending) >= prefetch:
+                break
+        while pending:
+            records = pending.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
                 pending.append(
-                    pool.submit(_load_chunk, path, fd, ci.chunk_start_offset, ci.chunk_length)
+                    pool.submit(_load_chunk, path, fd, nxt.chunk_start_offset, nxt.chunk_length)
                 )
-                if len(pending) >= prefetch:
-                    break
-            while pending:
-                records = pending.popleft().result()
-                nxt = next(todo, None)
-                if nxt is not None:
-                    pending.append(
-                        pool.submit(_load_chunk, path, fd, nxt.chunk_start_offset, nxt.chunk_length)
-                    )
-                yield from _messages(records, ids)
-        finally:
-            for f in pending:  # the caller stopped early: let no job read a closed fd
-                f.cancel()
-            for f in pending:
-                if not f.cancelled():
-                    f.exception()
+            yield from _messages(records, ids)
+    finally:
+        for f in pending:  # the caller stopped early: let no job read a closed file
+            f.cancel()
+        for f in pending:
+            if not f.cancelled():
+                f.exception()
 
 
 def _iter_linear(path: Path, ids: frozenset[int]) -> Iterator[RawMessage]:

@@ -35,8 +35,9 @@ from fleetdaq.analysis.stream import StreamData
 from fleetdaq.analysis.window import resolve_window
 
 T = TypeVar("T")
-WORKERS = min(2, os.cpu_count() or 1)
-"""Threads decompressing chunks ahead of the reader."""
+WORKERS = min(4, os.cpu_count() or 1)
+"""Threads decompressing chunks ahead of the reader (zstd releases the GIL, and so do numpy's
+copies): on 2 cores, 2 read a 300 MB stream in 0.32 s against 0.43 s with one."""
 
 
 @dataclass(frozen=True, slots=True)

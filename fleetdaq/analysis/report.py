@@ -24,7 +24,7 @@ from fleetdaq.analysis import plots
 from fleetdaq.analysis.assemble import gaps_between
 from fleetdaq.analysis.envelope import Envelope
 from fleetdaq.analysis.recording import Recording, StreamInfo
-from fleetdaq.analysis.stream import Gap, StreamData
+from fleetdaq.analysis.stream import BatchTable, Gap
 from fleetdaq.analysis.window import format_ns
 
 MAX_BINS = 1000
@@ -76,14 +76,14 @@ def _stream_report(
         first.channel_units,
         Envelope(lo, hi, bins, first.channel_count),
     )
-    previous: StreamData | None = None
+    previous: BatchTable | None = None  # the last piece's batches (not its samples)
     for group in rec.groups(info.topic, start, end):
         piece = rec.read_files(info, group, start, end)
         progress(sum(f.counts.get(info.topic, 0) for f in group))
         if not len(piece):
             continue
         if previous is not None:
-            gaps, steps = gaps_between(previous.batches, piece.batches)
+            gaps, steps = gaps_between(previous, piece.batches)
             out.gaps += gaps
             out.time_steps += steps
         out.env.add(piece)
@@ -99,7 +99,8 @@ def _stream_report(
                 b.rows[b.clock_state == code].sum()
             )
         out.clock.append((b.first_sample_time_ns, b.clock_offset_ns, b.clock_state))
-        previous = piece
+        previous = b
+        del piece
     out.rate_hz = float(1e9 / first.sample_period_ns)
     return out
 
