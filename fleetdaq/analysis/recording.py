@@ -168,13 +168,10 @@ class Recording:
     ) -> list[RecordedFile]:
         """The files that can hold `topic` data in [start, end): those whose acquisition span
         meets it, and the last one before it (its last batch may run into the window)."""
-        spans = [
-            (f, span)
-            for f in self.files
-            if topic in f.channel_ids and (span := f.span(topic, pool)) is not None
-        ]
+        holding = [f for f in self.files if topic in f.channel_ids and f.counts.get(topic, 1)]
         if start is None and end is None:
-            return [f for f, _ in spans]
+            return holding
+        spans = [(f, span) for f in holding if (span := f.span(topic, pool)) is not None]
         lo = start if start is not None else -(1 << 63)
         hi = end if end is not None else 1 << 63
         chosen = [(f, a) for f, (a, b) in spans if a < hi and b >= lo]

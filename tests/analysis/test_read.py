@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 from rosbags.highlevel import AnyReader
 
 import fleetdaq.read as fr
 from edge.config.hub import RecorderConfig
-from edge.wire import BatchEncoder, SampleStatus
+from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE, BatchEncoder, SampleStatus
 from hub.session import ACTIVE_SUFFIX, RecordingSession
 from hub.verify import recover_file
 from tests.analysis.recordings import (
@@ -333,3 +334,23 @@ def test_events_alarms_and_health_read_back_typed(tmp_path: Path):
     wec = fr.read_health(s.dir, "wec")
     assert [h.clock.offset_ns for h in wec] == [-120, 80]
     assert {h.node for h in fr.read_health(s.dir)} == {"wec", "hub"}
+
+
+def test_an_unchunked_file_from_another_writer_reads_the_same(tmp_path: Path):
+    batches = make_batches(6, scans=50)
+    enc = BatchEncoder("wec", "t8", CHANNELS, UNITS)
+    path = tmp_path / "other.mcap"
+    with path.open("wb") as fh:
+        w = Writer(fh, use_chunking=False)
+        w.start(profile="ros2")
+        sid = w.register_schema(SAMPLE_BATCH_TYPE, "ros2msg", SAMPLE_BATCH_SCHEMA.encode())
+        cid = w.register_channel("/wec/t8", "cdr", sid)
+        for b in batches:
+            payload = bytes(enc.encode(b.sequence, b.t0_ns, b.period_ns, b.data, b.clock))
+            w.add_message(cid, log_time=b.t0_ns, data=payload, publish_time=b.t0_ns)
+        w.finish()
+    got = fr.read_stream(path, "wec/t8", start=batches[2].t0_ns)
+    t, data = _expected(batches[2:])
+    assert np.array_equal(got.time_ns, t)
+    assert np.array_equal(got.data, data)
+    assert got.files == (path,)
