@@ -152,11 +152,22 @@ class _Writer(Protocol):
     def piece(self, exp: StreamExport, piece: StreamData, source: Path) -> None: ...
     def end(self, exp: StreamExport) -> None: ...
     def close(self, exports: list[StreamExport]) -> None: ...
+    def release(self) -> None:
+        """Close whatever is open (after a failure too); idempotent."""
 
 
 def run_export(plan: ExportPlan, progress: Progress | None = None) -> list[StreamExport]:
     """Write the export; returns what was written per stream."""
     writer = _writer(plan)
+    try:
+        return _export_streams(plan, writer, progress)
+    finally:
+        writer.release()
+
+
+def _export_streams(
+    plan: ExportPlan, writer: _Writer, progress: Progress | None
+) -> list[StreamExport]:
     exports: list[StreamExport] = []
     rec = plan.recording
     for info, channels in plan.streams:
@@ -294,6 +305,9 @@ class _ParquetWriter:
     def close(self, exports: list[StreamExport]) -> None:
         _write_metadata(self.plan, exports)
 
+    def release(self) -> None:
+        pass
+
 
 class _CsvWriter:
     def __init__(self, plan: ExportPlan) -> None:
@@ -327,11 +341,15 @@ class _CsvWriter:
         self.writer.write_table(pa.Table.from_arrays(columns, schema=self.schema))
 
     def end(self, exp: StreamExport) -> None:
-        self.writer.close()
-        self.writer = None
+        self.release()
 
     def close(self, exports: list[StreamExport]) -> None:
         _write_metadata(self.plan, exports)
+
+    def release(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None
 
 
 class _NetcdfWriter:
@@ -379,11 +397,15 @@ class _NetcdfWriter:
     def end(self, exp: StreamExport) -> None:
         self.file.attrs["sample_rate_hz"] = exp.sample_rate_hz
         self.file.attrs["gaps"] = json.dumps([g.as_dict() for g in exp.gaps])
-        self.file.close()
-        self.file = None
+        self.release()
 
     def close(self, exports: list[StreamExport]) -> None:
         _write_metadata(self.plan, exports)
+
+    def release(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None
 
 
 class _Hdf5Writer:
@@ -447,4 +469,7 @@ class _Hdf5Writer:
         exp.files.append(self.plan.out)
 
     def close(self, exports: list[StreamExport]) -> None:
-        self.file.close()
+        self.release()
+
+    def release(self) -> None:
+        self.file.close()  # h5py: closing a closed file does nothing
