@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) bench/t8.py
 	$(PY) bench/timing.py
 	$(PY) bench/outage.py
+	$(PY) bench/read.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

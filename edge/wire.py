@@ -190,10 +190,13 @@ class BatchEncoder:
 
 
 def _read_header(r: Reader) -> BatchHeader:
-    node = r.string()
-    stream = r.string()
-    names = r.strings()
-    units = r.strings()
+    return _read_rest(r, r.string(), r.string(), r.strings(), r.strings())
+
+
+def _read_rest(
+    r: Reader, node: str, stream: str, names: tuple[str, ...], units: tuple[str, ...]
+) -> BatchHeader:
+    """The header after its strings (node, stream, channel names and units)."""
     seq, t0, period, scans, channels = r.unpack("<QqdII", 32, 8)
     (state,) = r.unpack("<B", 1, 1)
     (offset,) = r.unpack("<q", 8, 8)
@@ -259,3 +262,30 @@ def decode_batch(payload: bytes | bytearray | memoryview) -> SampleBatch:
     data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
     status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
     return SampleBatch(h, data, status)
+
+
+class BatchDecoder:
+    """Decodes the batches of one stream as `decode_batch` does, but parses the part that
+    never changes within a stream (node, stream, channel names and units) only when its bytes
+    change: the mirror of `BatchEncoder`, for readers of long recordings. Every other field
+    and every length is checked on every batch."""
+
+    def __init__(self) -> None:
+        self._prefix = b""
+        self._strings: tuple[str, str, tuple[str, ...], tuple[str, ...]] = ("", "", (), ())
+
+    def decode(self, payload: bytes | bytearray | memoryview) -> SampleBatch:
+        """Like `decode_batch` (raises WireError for anything that is not a SampleBatch)."""
+        r = Reader(payload)
+        n = len(self._prefix)
+        if n and len(payload) > n and payload[:n] == self._prefix:
+            r.pos = n
+        else:
+            self._strings = (r.string(), r.string(), r.strings(), r.strings())
+            self._prefix = bytes(payload[: r.pos])
+        h = _read_rest(r, *self._strings)
+        status_mv, data_mv = _array_views(r, h)
+        shape = (h.scan_count, h.channel_count)
+        data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
+        status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
+        return SampleBatch(h, data, status)

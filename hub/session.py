@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import fnmatch
+import json
 import logging
 import os
 import socket
@@ -38,6 +39,11 @@ ACTIVE_SUFFIX = ".active"
 SCHEMAS = {SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA, **MESSAGE_SCHEMAS}
 """Every message type the hub records, with its ros2msg definition (embedded per file)."""
 EVENTS_TOPIC = "/events"
+FILE_INDEX_METADATA = "fleetdaq.file_index"
+"""Metadata record written when a file closes: per topic, the message count and the span of
+`publish_time` (acquisition time). Readers pick the files a time window needs from it without
+reading their chunks: `log_time` alone cannot tell, since a replayed batch is logged long
+after it was acquired."""
 
 
 def session_name(now_ns: int) -> str:
@@ -80,13 +86,29 @@ class FileStats:
     start_ns: int | None = None
     end_ns: int | None = None
     per_topic: dict[str, int] = field(default_factory=dict)
+    publish_spans: dict[str, tuple[int, int]] = field(default_factory=dict)
+    """Per topic, the earliest and latest `publish_time` written (acquisition time)."""
 
-    def add(self, topic: str, log_time: int) -> None:
+    def add(self, topic: str, log_time: int, publish_time: int | None = None) -> None:
         self.messages += 1
         self.per_topic[topic] = self.per_topic.get(topic, 0) + 1
         if self.start_ns is None:
             self.start_ns = log_time
         self.end_ns = log_time
+        if publish_time is not None:
+            span = self.publish_spans.get(topic)
+            if span is None:
+                self.publish_spans[topic] = (publish_time, publish_time)
+            elif publish_time < span[0] or publish_time > span[1]:
+                self.publish_spans[topic] = (min(span[0], publish_time), max(span[1], publish_time))
+
+    def index_metadata(self) -> dict[str, str]:
+        """The `FILE_INDEX_METADATA` record (MCAP metadata values are strings)."""
+        topics = {
+            t: {"messages": self.per_topic[t], "publish_start_ns": a, "publish_end_ns": b}
+            for t, (a, b) in sorted(self.publish_spans.items())
+        }
+        return {"version": "1", "topics": json.dumps(topics, separators=(",", ":"))}
 
 
 class _OpenFile:
@@ -122,6 +144,7 @@ class _OpenFile:
         return cid
 
     def finish(self) -> None:
+        self.writer.add_metadata(FILE_INDEX_METADATA, self.stats.index_metadata())
         self.writer.finish()  # type: ignore[no-untyped-call]
         self.fh.flush()
         os.fsync(self.fh.fileno())
@@ -236,7 +259,7 @@ class RecordingSession:
         f.writer.add_message(
             f.channel(topic, msgtype), log_time=log_ns, data=payload, publish_time=publish_ns
         )
-        f.stats.add(topic, log_ns)
+        f.stats.add(topic, log_ns, publish_ns)
         self.topic_types[topic] = msgtype
 
     def split(self) -> None:

@@ -14,9 +14,12 @@ COMMANDS: dict[str, str] = {
     "check": "fleetdaq.cli.check:check",
     "demo": "fleetdaq.cli.demo:demo",
     "edge": "fleetdaq.cli.edge:edge",
+    "export": "fleetdaq.cli.export:export",
     "hub": "fleetdaq.cli.hub:hub",
+    "import-modaq": "fleetdaq.cli.import_modaq:import_modaq",
     "out": "fleetdaq.cli.out:out",
     "ptp": "fleetdaq.cli.ptp:ptp",
+    "report": "fleetdaq.cli.report:report",
     "rules": "fleetdaq.cli.rules:rules",
     "verify": "fleetdaq.cli.verify:verify",
 }
