@@ -108,6 +108,8 @@ class HubView:
     """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
     rules: dict[str, Any] = field(default_factory=dict)
     """Every rule's and hub interlock's state (`hub.rules.RuleEngine.states`)."""
+    snapshots: dict[str, Any] = field(default_factory=dict)
+    """The snapshot buffer (`hub.snapshots.SnapshotBuffer.counters`); empty when switched off."""
     commands: dict[str, int] = field(default_factory=dict)
     """Commands sent, applied, refused, timed out."""
     fleet: dict[str, Any] = field(default_factory=dict)

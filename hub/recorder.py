@@ -27,6 +27,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,9 @@ from hub.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
 from hub.stream_stats import StreamStats
 
 log = logging.getLogger("fleetdaq.recorder")
+
+Tap = Callable[[str, bytes, int, int, str], None]
+"""tap(topic, payload, publish time, receive time, message type)."""
 
 _STOP = object()
 _DATA, _EVENT, _MESSAGE, _DROPS = 0, 1, 2, 3
@@ -89,6 +93,9 @@ class Recorder:
         self.streams = {(st.node, st.stream): st for st in self.routes.values()}
         self.refused = refused
         self.feed = feed or BatchFeed()
+        self.tap: Tap | None = None
+        """Also handed every message recorded besides batches (the snapshot buffer), on the
+        writer thread, whether or not the recorder is recording. Must be quick."""
         """Accepted batches go on to the services that look at the data (alarms, ...)."""
         self.write_errors = 0
         self.writer_errors = 0
@@ -394,6 +401,8 @@ class Recorder:
         assert self.session is not None
         publish = publish_ns if plausible_time(publish_ns, recv_ns) else recv_ns
         item = (topic, payload, publish, recv_ns, msgtype)
+        if self.tap is not None:
+            self.tap(topic, payload, publish, recv_ns, msgtype)
         if not self.recording:
             return  # stopped by an operator or a rule: nothing is written (nothing is owed)
         if self._recovering():

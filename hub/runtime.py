@@ -36,14 +36,17 @@ from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
 from hub.heartbeat import Heartbeat
 from hub.hub_health import HubHealth
+from hub.live_plots import LivePlots
 from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
+from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
 from hub.router import Router
 from hub.rules import RuleEngine
 from hub.services import ServiceStack
+from hub.snapshots import SnapshotBuffer
 from hub.status import StatusService
 
 log = logging.getLogger("fleetdaq.hub")
@@ -120,6 +123,21 @@ class HubRuntime:
             self.snapshot,
             self._record_action,
         )
+        self.snapshots = (
+            SnapshotBuffer(site, self.data_dir, self.bus, self.model, self.feed)
+            if site.hub.snapshot.enabled
+            else None
+        )
+        if self.snapshots is not None:
+            self.recorder.tap = self.snapshots.offer
+        self.live_plots = LivePlots(site, self.feed)
+        self.recorder_requests = RecorderRequests(
+            self.router,
+            self.keys,
+            self.recorder,
+            self.snapshot,
+            self.snapshots.snapshot if self.snapshots is not None else None,
+        )
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
         self.status = StatusService(self.router, self.keys, self.snapshot)
         self.services = ServiceStack(
@@ -132,10 +150,13 @@ class HubRuntime:
                 self.nodes,
                 self.fleet,
                 self.hub_health,
+                *([self.snapshots] if self.snapshots is not None else []),
+                self.live_plots,
                 self.supervisor,
                 self.alarm_requests,
                 self.commands,
                 self.rules,
+                self.recorder_requests,
                 self.heartbeat,
                 self.status,
             ]
@@ -148,6 +169,11 @@ class HubRuntime:
             return self.recorder.split(who)
         if action == "stop":
             return self.recorder.stop_recording(who)
+        if action == "snapshot":
+            if self.snapshots is None:
+                return "snapshot: the snapshot buffer is switched off"
+            _, what = self.snapshots.snapshot(who)
+            return f"snapshot: {what}"
         return self.recorder.start_recording(who)
 
     def _session_name(self) -> str:
@@ -206,7 +232,8 @@ class HubRuntime:
             for s in self.bus.stats()
         )
         failures = tuple(self.failures()) if self.started else ()
-        return dataclasses.replace(view, bus=bus, failures=failures)
+        snapshots = self.snapshots.counters() if self.snapshots is not None else {}
+        return dataclasses.replace(view, bus=bus, failures=failures, snapshots=snapshots)
 
     def summary(self) -> dict[str, Any]:
         """The final accounting (per stream, files, refused traffic, events by level)."""

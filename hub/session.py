@@ -163,8 +163,10 @@ class RecordingSession:
         cfg: RecorderConfig,
         config_yaml: str,
         now_ns: int,
+        extra_metadata: dict[str, dict[str, str]] | None = None,
     ) -> None:
         self.cfg = cfg
+        self.extra_metadata = extra_metadata or {}
         self.site = site
         self.nodes = nodes
         self.config_yaml = config_yaml
@@ -220,6 +222,8 @@ class RecordingSession:
                 "hub_host": socket.gethostname(),
             },
         )
+        for name, record in self.extra_metadata.items():
+            f.writer.add_metadata(name, record)
         f.writer.add_attachment(
             create_time=now_ns,
             log_time=now_ns,

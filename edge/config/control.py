@@ -12,7 +12,7 @@ A condition is a small tree, written as YAML:
 - ``{all: [...]}``, ``{any: [...]}``, ``{not: {...}}``.
 
 An action: ``{set: node/output, value: X}``, ``{pulse: node/output, for_s: S}`` (``value:``
-[1]), ``{record: split}`` (``start``, ``stop``), ``{event: "text", level: warning}``.
+[1]), ``{record: split}`` (``start``, ``stop``, ``snapshot``), ``{event: "text", level: warning}``.
 """
 
 from __future__ import annotations
@@ -118,8 +118,7 @@ Condition = Annotated[
         _condition_kind,
         custom_error_type="condition_kind",
         custom_error_message=(
-            "a condition names what it tests: channel:, alarm:, node:, output:, all:, any: "
-            "or not:"
+            "a condition names what it tests: channel:, alarm:, node:, output:, all:, any: or not:"
         ),
     ),
 ]
@@ -144,7 +143,7 @@ class PulseAction(Strict):
 
 
 class RecordAction(Strict):
-    record: Literal["split", "start", "stop"]
+    record: Literal["split", "start", "stop", "snapshot"]
 
 
 class EventAction(Strict):
@@ -169,7 +168,7 @@ Action = Annotated[
         custom_error_type="action_kind",
         custom_error_message=(
             "an action is one of: set: node/output (value:), pulse: node/output (for_s:), "
-            "record: split|start|stop, event: text"
+            "record: split|start|stop|snapshot, event: text"
         ),
     ),
 ]

@@ -9,8 +9,9 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from edge.config.alarms import UniversalAlarms
+from edge.config.alarms import Severity, UniversalAlarms
 from edge.config.control import InterlockConfig, RuleName
+from edge.config.dashboard import DashboardConfig
 from edge.config.notify import NotifyConfig
 from edge.schema import Endpoints, Float, Int, Strict
 
@@ -38,6 +39,23 @@ class RecorderConfig(Strict):
         return self
 
 
+class SnapshotConfig(Strict):
+    """The snapshot buffer (rosbag2's snapshot mode): the last `seconds` of every stream, the
+    events and the health, in bounded memory, written to ``<data_dir>/snapshots/`` on request
+    (`fleetdaq rec snapshot`, the dashboard, a rule's ``record: snapshot``) or when an alarm of
+    one of the `on_alarm` severities is raised: the minute before an event is kept even when
+    nobody was recording."""
+
+    enabled: bool = True
+    seconds: Annotated[Float, Field(gt=0, le=3600)] = 60.0
+    max_bytes: Annotated[Int, Field(ge=1 << 20, le=64 << 30)] = 512 << 20
+    """Memory bound: the oldest messages go first when the buffer holds more than this."""
+    on_alarm: list[Severity] = ["critical", "major"]
+    min_interval_s: Annotated[Float, Field(ge=0, le=86400)] = 30.0
+    """Alarm-triggered snapshots closer together than this are one (requests are never
+    merged)."""
+
+
 class HubConfig(Strict):
     listen: Endpoints = ["tcp/127.0.0.1:7447"]
     """The embedded router's endpoints; edges connect to these unless a node says otherwise."""
@@ -50,6 +68,9 @@ class HubConfig(Strict):
     notify: NotifyConfig = NotifyConfig()
     interlocks: dict[RuleName, InterlockConfig] = {}
     """Cross-node interlocks, evaluated on the hub (`edge.config.control`)."""
+    snapshot: SnapshotConfig = SnapshotConfig()
+    dashboard: DashboardConfig = DashboardConfig()
+    """The dashboard, /metrics and the Foxglove live view (`edge.config.dashboard`)."""
     alarm_journal: str | None = None
     """Where alarm states and the ack/shelve audit are kept across restarts (default:
     `<data_dir>/alarms.journal`)."""

@@ -1,0 +1,60 @@
+"""The hub's web side in the site file (`hub.dashboard:`): the fleet health dashboard, its
+Prometheus ``/metrics``, and the Foxglove live view.
+
+Users and their password hashes never live in the site file: `users_file` names a file of
+argon2 hashes (`fleetdaq users add NAME` writes it). Viewing may be open to anyone who can reach
+the address (`open_view`); every action (ack, shelve, outputs, rules, recorder) needs a login.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from typing import Annotated
+
+from pydantic import AfterValidator, Field
+
+from edge.schema import Float, Strict
+
+
+def check_listen(value: str) -> str:
+    """``host:port`` (``[::1]:8080`` for IPv6) with an address, not a name: what is exposed
+    must be said exactly. ``0.0.0.0:8080`` serves the whole LAN."""
+    host, sep, port = value.rpartition(":")
+    if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"{value!r} is not address:port (e.g. 127.0.0.1:8080, 0.0.0.0:8080)")
+    try:
+        ipaddress.ip_address(host.removeprefix("[").removesuffix("]"))
+    except ValueError:
+        raise ValueError(
+            f"{host!r} in {value!r} is not an IP address (127.0.0.1 for this machine only, "
+            "0.0.0.0 for every interface)"
+        ) from None
+    return value
+
+
+Listen = Annotated[str, AfterValidator(check_listen)]
+
+
+class FoxgloveConfig(Strict):
+    """Foxglove (or Lichtblick) connects here with "Foxglove WebSocket" and sees every stream,
+    the events, the alarms and the nodes' health live."""
+
+    enabled: bool = True
+    listen: Listen = "127.0.0.1:8765"
+
+
+class DashboardConfig(Strict):
+    enabled: bool = True
+    listen: Listen = "127.0.0.1:8080"
+    """Where the dashboard and ``/metrics`` are served. The default serves this machine only;
+    ``0.0.0.0:8080`` serves the LAN (put it behind the site's firewall)."""
+    open_view: bool = True
+    """Anyone who reaches the address may look; actions always need a login."""
+    users_file: str | None = None
+    """Users and their argon2 password hashes (default: ``<state dir>/dashboard-users``).
+    No file: nobody can log in, so nothing can be done from the page."""
+    session_ttl_s: Annotated[Float, Field(ge=60, le=7 * 24 * 3600)] = 12 * 3600.0
+    """A login lasts this long without use (it is renewed by use)."""
+    metrics: bool = True
+    """Serve Prometheus ``/metrics`` (never needs a login: a scraper has none)."""
+    foxglove: FoxgloveConfig = FoxgloveConfig()

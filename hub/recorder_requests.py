@@ -1,0 +1,75 @@
+"""Recorder control: ``fleetdaq/<site>/hub/recorder`` (`fleetdaq rec ...`, the dashboard).
+
+Request: ``{"action": "status" | "start" | "stop" | "split" | "snapshot", "user": who,
+"host": from where, "note": text}``. Reply: ``{"ok": bool, "error": text, "result": what was
+done, "recorder": the recorder's view, "snapshots": the snapshot buffer's view}``. Every action
+is an event naming who asked (the recorder's and the snapshot buffer's own events).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from edge.keys import SiteKeys
+from hub.read_model import HubView, to_jsonable
+from hub.recorder import Recorder
+from hub.requests import BadRequest, RequestService, parse_object, text
+from hub.router import Router
+
+ACTIONS = ("status", "start", "stop", "split", "snapshot")
+Snapshot = Callable[[str, str], tuple[bool, str]]
+"""snapshot(who, note) -> (written, what: the file or why not)."""
+
+
+class RecorderRequests(RequestService):
+    name = "recorder-requests"
+
+    def __init__(
+        self,
+        router: Router,
+        keys: SiteKeys,
+        recorder: Recorder,
+        view: Callable[[], HubView],
+        snapshot: Snapshot | None,
+    ) -> None:
+        super().__init__(router, keys.hub("recorder"), workers=1)
+        self.recorder = recorder
+        self.view = view
+        self.snapshot = snapshot
+
+    def handle(self, raw: bytes) -> dict[str, Any]:
+        try:
+            req = parse_object(raw, ("action", "user", "host", "note"))
+            action = req.get("action", "status")
+            if action not in ACTIONS:
+                raise BadRequest(f"unknown action {action!r} (one of {', '.join(ACTIONS)})")
+            who = f"{text(req, 'user', 100, 'unknown')}@{text(req, 'host', 255, 'unknown')}"
+            note = text(req, "note")
+        except BadRequest as err:
+            return self._answer(False, str(err), "")
+        rec = self.recorder
+        ok, result = True, ""
+        if action == "start":
+            result = rec.start_recording(who)
+        elif action == "stop":
+            result = rec.stop_recording(who)
+        elif action == "split":
+            result = rec.split(who)
+            ok = result.startswith("closed")
+        elif action == "snapshot":
+            if self.snapshot is None:
+                ok, result = False, "the snapshot buffer is switched off (hub.snapshot.enabled)"
+            else:
+                ok, result = self.snapshot(who, note)
+        return self._answer(ok, "", result)
+
+    def _answer(self, ok: bool, error: str, result: str) -> dict[str, Any]:
+        view = self.view()
+        return {
+            "ok": ok and not error,
+            "error": error,
+            "result": result,
+            "recorder": to_jsonable(view.recorder),
+            "snapshots": to_jsonable(view.snapshots),
+        }

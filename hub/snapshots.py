@@ -1,0 +1,236 @@
+"""The snapshot buffer, like rosbag2's snapshot mode: the last `hub.snapshot.seconds` of every
+stream, every event, health report, alarm state and command, held in bounded memory and
+written to a file on request (`fleetdaq rec snapshot`, the dashboard, a rule's
+``record: snapshot``) or when an alarm of a configured severity is raised. The minute before
+an event is kept even when nobody was recording.
+
+What is held is what the recorder takes (checked, new messages), by reference: a batch's
+payload is the same bytes object the recorder wrote, never a copy. Batches come from the batch
+feed; everything else from the recorder's tap (called on its writer thread: an append). The
+memory bound (`max_bytes`) is counted on payload bytes plus a per-message overhead; when it
+binds before `seconds` does, the view says how many seconds the buffer really covers.
+
+A snapshot is a folder ``<data_dir>/snapshots/<UTC time>/`` written like a recording session
+(one MCAP file and a rosbag2 ``metadata.yaml``), so `fleetdaq.read`, `fleetdaq verify`,
+rosbags and ``ros2 bag`` open it like any recording. Files are written on the buffer's own
+thread; an alarm-triggered snapshot waits `GRACE_S` so the batches in flight at the alarm are in
+it, and alarms closer together than `min_interval_s` share one snapshot.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from typing import Any
+
+from edge.config.site import SiteConfig, effective_yaml
+from edge.messages import Event
+from edge.wire import SAMPLE_BATCH_TYPE, plausible_time
+from hub.batch_feed import BatchFeed, FedBatch
+from hub.bus import EventBus
+from hub.read_model import ReadModel
+from hub.session import RecordingSession, topic_of
+
+log = logging.getLogger("fleetdaq.snapshots")
+
+OVERHEAD_BYTES = 200
+"""Counted per held message on top of its payload (the tuple, the deque slot, the ints)."""
+GRACE_S = 2.0
+"""An alarm-triggered snapshot is written this long after the alarm (batches in flight)."""
+WAIT_S = 120.0
+"""How long a request waits for its file."""
+
+Held = tuple[int, str, bytes, int, str]
+"""(receive time, topic, payload, publish time, message type)."""
+
+
+class SnapshotBuffer:
+    name = "snapshots"
+
+    def __init__(
+        self,
+        site: SiteConfig,
+        data_dir: Path,
+        bus: EventBus,
+        model: ReadModel,
+        feed: BatchFeed,
+    ) -> None:
+        self.cfg = site.hub.snapshot
+        self.site = site
+        self.root = data_dir / "snapshots"
+        self.bus = bus
+        self.model = model
+        self.window_ns = round(self.cfg.seconds * 1e9)
+        self._held: collections.deque[Held] = collections.deque()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.evicted_for_memory = 0
+        self.written: list[str] = []
+        self.failed = 0
+        self.merged = 0
+        self._last_alarm_ns = 0
+        self._pending_alarm: Future[tuple[bool, str]] | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
+        self._events = bus.subscribe(self.name, self._on_event)
+        self._recorder_cfg = site.hub.recorder.model_copy(
+            update={"file_duration_s": None, "max_file_bytes": 1 << 50}
+        )
+        self._config_yaml = effective_yaml(site)
+        self._publish()
+
+    # --- service ---------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="snapshot-writer")
+        self._consumer.start()
+
+    def stop(self) -> None:
+        self._consumer.stop()
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True)  # a pending alarm snapshot is still written
+
+    def failure(self) -> str | None:
+        if self._pool is not None and not self._consumer.alive:
+            return "the snapshot buffer's feed thread died"
+        return None
+
+    # --- holding ---------------------------------------------------------------------------------
+
+    def offer(
+        self, topic: str, payload: bytes, publish_ns: int, recv_ns: int, msgtype: str
+    ) -> None:
+        """Hold one message (the recorder's tap; any thread). An append and some evictions."""
+        size = len(payload) + OVERHEAD_BYTES
+        limit = self.cfg.max_bytes
+        with self._lock:
+            held = self._held
+            held.append((recv_ns, topic, payload, publish_ns, msgtype))
+            self._bytes += size
+            oldest = recv_ns - self.window_ns
+            while held and (held[0][0] < oldest or self._bytes > limit):
+                old = held.popleft()
+                self._bytes -= len(old[2]) + OVERHEAD_BYTES
+                if old[0] >= oldest:
+                    self.evicted_for_memory += 1
+
+    def _on_batch(self, b: FedBatch) -> None:
+        first = b.header.first_sample_time_ns
+        publish = first if plausible_time(first, b.recv_ns) else b.recv_ns
+        self.offer(topic_of(b.node, b.stream), b.payload, publish, b.recv_ns, SAMPLE_BATCH_TYPE)
+
+    def _on_event(self, e: Event) -> None:
+        if e.tag != "alarm_raised" or e.get("severity") not in self.cfg.on_alarm:
+            return
+        pool = self._pool
+        if pool is None:
+            return
+        now = time.time_ns()
+        alarm = e.get("alarm") or "?"
+        pending = self._pending_alarm
+        if now - self._last_alarm_ns < self.cfg.min_interval_s * 1e9 or (
+            pending is not None and not pending.done()
+        ):
+            self.merged += 1
+            return
+        self._last_alarm_ns = now
+
+        def later() -> tuple[bool, str]:
+            time.sleep(GRACE_S)
+            return self._write(f"alarm {alarm} raised", f"alarm:{alarm}", "")
+
+        self._pending_alarm = pool.submit(later)
+
+    # --- writing ---------------------------------------------------------------------------------
+
+    def snapshot(self, who: str, note: str = "") -> tuple[bool, str]:
+        """Write what is held now (a request: waits for the file). (written, path or why not)."""
+        pool = self._pool
+        if pool is None:
+            return False, "the hub is not running"
+        try:
+            return pool.submit(self._write, f"requested by {who}", who, note).result(WAIT_S)
+        except FutureTimeout:
+            return False, f"the snapshot is still being written after {WAIT_S:g} s"
+
+    def _write(self, why: str, who: str, note: str) -> tuple[bool, str]:
+        with self._lock:
+            held = sorted(self._held, key=lambda m: m[0])
+        if not held:
+            return False, "nothing held yet"
+        now = time.time_ns()
+        try:
+            session = RecordingSession(
+                self.root,
+                self.site.site,
+                list(self.site.nodes),
+                self._recorder_cfg,
+                self._config_yaml,
+                now,
+                extra_metadata={
+                    "fleetdaq.snapshot": {"why": why, "who": who, "note": note, "time_ns": str(now)}
+                },
+            )
+            for recv_ns, topic, payload, publish_ns, msgtype in held:
+                session.write(topic, payload, publish_ns, recv_ns, msgtype)
+            session.close()
+        except OSError as err:
+            self.failed += 1
+            self.bus.emit(
+                logging.ERROR,
+                "recorder",
+                "snapshot_failed",
+                f"snapshot ({why}) could not be written: {err}",
+                why=why,
+                by=who,
+            )
+            self._publish()
+            return False, f"could not write the snapshot: {err}"
+        span_s = (held[-1][0] - held[0][0]) / 1e9
+        path = str(session.dir)
+        self.written.append(path)
+        self.bus.emit(
+            logging.INFO,
+            "recorder",
+            "snapshot",
+            f"snapshot of the last {span_s:.0f} s written to {path} ({why})"
+            + (f": {note}" if note else ""),
+            path=path,
+            why=why,
+            by=who,
+            messages=len(held),
+            span_s=round(span_s, 3),
+        )
+        self._publish()
+        return True, path
+
+    # --- view ------------------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, Any]:
+        with self._lock:
+            held = len(self._held)
+            span = (self._held[-1][0] - self._held[0][0]) / 1e9 if held > 1 else 0.0
+            nbytes = self._bytes
+        return {
+            "enabled": True,
+            "seconds": self.cfg.seconds,
+            "max_bytes": self.cfg.max_bytes,
+            "held_messages": held,
+            "held_bytes": nbytes,
+            "covers_s": round(span, 3),
+            "evicted_for_memory": self.evicted_for_memory,
+            "written": len(self.written),
+            "last": self.written[-1] if self.written else "",
+            "failed": self.failed,
+            "merged_alarms": self.merged,
+            "on_alarm": list(self.cfg.on_alarm),
+        }
+
+    def _publish(self) -> None:
+        self.model.put("snapshots", self.counters())
