@@ -195,10 +195,10 @@ class StreamLoop:
             for ev in block.events:
                 self.events.emit(ev.level, self.name, ev.tag, ev.message)
             self.time_fit.observe(index + scans - 1, block.host_ns, block.device_ns)
-            t0 = self.time_fit.time_of(index)
+            t0, period = self.time_fit.stamp(index, scans)
             seq = c.next_sequence
             payload = self.encoder.encode(
-                seq, t0, self.time_fit.period_ns, values, self.time_sync.quality, block.status
+                seq, t0, period, values, self.time_sync.quality, block.status
             )
             for d in self.spool.append(seq, t0, payload):
                 self.events.emit(
