@@ -62,6 +62,8 @@ class _Control:
     """"lost", "back" or "interlock"."""
     missing_s: float = 0.0
     change: Change | None = None
+    first: bool = False
+    """"back": the first heartbeat since start."""
 
 
 class OutputService:
@@ -96,6 +98,8 @@ class OutputService:
         )
         self.safe_state = True
         self.safe_reason = "no hub heartbeat heard yet"
+        self._heard = False
+        self._junk_reported = 0
         self.watchdogs: list[HardwareWatchdog] = []
         self._cond = threading.Condition()
         self._queries: deque[_Query] = deque()
@@ -160,7 +164,19 @@ class OutputService:
 
     def _on_beat(self, sample: Any) -> None:
         try:
-            self.hub.heard(sample.payload.to_bytes())
+            if self.hub.heard(sample.payload.to_bytes()):
+                return
+            junk = self.hub.junk
+            if junk == 1 or junk >= self._junk_reported * 10:
+                self._junk_reported = junk
+                self.events.emit(
+                    logging.WARNING,
+                    "outputs",
+                    "heartbeat_refused",
+                    f"refused a payload on the hub heartbeat key that is not a HubHeartbeat "
+                    f"({junk} so far): it does not count as the hub being there",
+                    count=junk,
+                )
         except Exception:  # a callback must never die; count and go on
             log.exception("hub heartbeat")
 
@@ -224,7 +240,8 @@ class OutputService:
         self._post(_Control("lost", missing_s=missing_s))
 
     def _hub_back(self, beat: HubHeartbeat) -> None:
-        self._post(_Control("back"))
+        first, self._heard = not self._heard, True
+        self._post(_Control("back", first=first))
 
     def _interlock_changed(self, change: Change) -> None:
         if change.tripped and change.interlock.cfg.force_safe:
@@ -382,15 +399,17 @@ class OutputService:
                 outputs=", ".join(f"{n}={v:g}" for n, v in done.items()),
             )
         elif job.kind == "back":
-            was = self.safe_reason
+            first = job.first
             self.safe_state = False
             self.safe_reason = ""
+            what = "heard" if first else "back"
             self.events.emit(
                 logging.INFO,
                 "outputs",
                 "safe_state_cleared",
-                f"hub heartbeat heard ({was} before): commands accepted again for outputs "
-                "that are armed (every output must be armed after a safe state)",
+                f"hub heartbeat {what}: commands are accepted for outputs once they are armed "
+                "(every output needs arming after start and after a safe state)",
+                first=first,
             )
         elif job.kind == "interlock" and job.change is not None:
             lock = job.change.interlock

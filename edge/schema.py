@@ -232,11 +232,14 @@ class OutputBase(Strict):
         if self.min >= self.max:
             raise ValueError(f"min ({self.min:g}) must be below max ({self.max:g})")
         span = self.device_span
-        if span is not None and (self.min < span[0] or self.max > span[1]):
-            raise ValueError(
-                f"limits {self.min:g}..{self.max:g} {self.unit} are beyond what the device can "
-                f"output ({span[0]:g}..{span[1]:g} {self.unit})"
-            )
+        if span is not None:
+            unit = f" {self.unit}" if self.unit else ""
+            for key, got in (("min", self.min), ("max", self.max)):
+                if not span[0] <= got <= span[1]:
+                    raise ValueError(
+                        f"{key}: {got:g}{unit} is beyond what the device can output "
+                        f"({span[0]:g}..{span[1]:g}{unit})"
+                    )
         for key in ("safe", "initial"):
             got = getattr(self, key)
             if got is not None and not self.min <= got <= self.max:

@@ -165,6 +165,9 @@ def test_hostile_payloads_are_refused_not_allowed_and_the_queryable_keeps_answer
     assert d.ask("cmd", output="heater", key="*", timeout=1.0)["replies"] == []
     assert d.command("heater", "read")["applied"]  # still answering
     assert d.events("malformed_command")
+    d.ask("junk_beat")  # junk on the heartbeat key: refused, counted, the hub still counts
+    wait_until(lambda: d.events("heartbeat_refused"), 10, "the refused heartbeat")
+    assert not d.command("heater", "read")["safe_state"]
 
 
 def test_applied_commands_read_back_from_the_device_and_a_retry_is_applied_once(
