@@ -136,9 +136,9 @@ class OutputChannel:
             self.driver.close()
 
     def _failed(self, err: BaseException) -> None:
+        # The driver is not closed: its device may be shared (a T8 that also streams, the other
+        # pins of a PCF8574), and the drivers heal their own handles on the next call.
         self.fault = str(err) or type(err).__name__
         self._open = False
-        with contextlib.suppress(DriverError, OSError):
-            self.driver.close()
         self._retry_s = self.now_s() + self._backoff
         self._backoff = min(self._backoff * 2, REOPEN_MAX_S)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import re
 import threading
 from collections import deque
@@ -101,6 +102,7 @@ class OutputService:
         self._heard = False
         self._junk_reported = 0
         self.watchdogs: list[HardwareWatchdog] = []
+        self._armed_watchdogs: set[int] = set()
         self._cond = threading.Condition()
         self._queries: deque[_Query] = deque()
         self._controls: deque[object] = deque()
@@ -329,6 +331,8 @@ class OutputService:
 
     def _arm_watchdogs(self) -> None:
         for dog in self.watchdogs:
+            if id(dog) in self._armed_watchdogs:
+                continue
             try:
                 what = dog.arm(self.control.safe_after_s)
             except (DriverError, OSError) as err:
@@ -336,10 +340,27 @@ class OutputService:
                     logging.WARNING,
                     "outputs",
                     "hardware_watchdog",
-                    f"{dog.where}: hardware watchdog not set: {err}",
+                    f"{dog.where}: hardware watchdog not set: {err}; trying again when the "
+                    "device answers",
                 )
                 continue
+            self._armed_watchdogs.add(id(dog))
             self.events.emit(logging.INFO, "outputs", "hardware_watchdog", what)
+
+    def _recovered(self, ch: OutputChannel) -> None:
+        """A device answers again: finish what could not be done while it did not."""
+        self.events.emit(
+            logging.INFO, ch.name, "output_recovered", f"{ch.driver.where} answers again"
+        )
+        if math.isnan(ch.value):  # never written: what start (or the safe state) wanted
+            value = ch.cfg.safe if self.safe_state and self._heard else ch.cfg.initial_value
+            try:
+                ch.write(value)
+            except DriverError as err:
+                self.events.emit(
+                    logging.ERROR, ch.name, "output_fault", f"writing {value:g} failed: {err}"
+                )
+        self._arm_watchdogs()
 
     def _shutdown(self) -> None:
         for ch in self.channels.values():
@@ -469,9 +490,7 @@ class OutputService:
                     logging.ERROR, ch.name, "output_fault", f"readback failed: {ch.fault}"
                 )
             elif was_fault and not ch.fault:
-                self.events.emit(
-                    logging.INFO, ch.name, "output_recovered", f"{ch.driver.where} answers again"
-                )
+                self._recovered(ch)
             differs = ch.readback_differs()
             if differs != ch.mismatch:
                 ch.mismatch = differs
