@@ -405,6 +405,10 @@ class OutputService:
         return out
 
     def _apply_control(self, job: _Control) -> None:
+        if not self.channels:  # nothing to guard: the state is kept, nothing to say
+            self.safe_state = job.kind != "back"
+            self.safe_reason = "" if job.kind == "back" else "no hub heartbeat"
+            return
         if job.kind == "lost":
             self.safe_state = True
             self.safe_reason = f"no hub heartbeat for {job.missing_s:.1f} s"
