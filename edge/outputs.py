@@ -4,8 +4,9 @@ readback and the devices' hardware watchdogs.
 One queryable on ``fleetdaq/<site>/<node>/out/*`` answers every command with an
 `OutputReply` (applied with the readback, or refused with one reason). The Zenoh callback only
 parses the key and queues the query (a full queue is refused at once: ``not_allowed``, busy);
-one worker thread makes every device call, in order: commands, the end of pulses, safe
-values (heartbeat lost, interlocks, start and stop), readback polls. Nothing a query carries
+one worker thread makes every device call, in order: commands (`edge.output_commands`), the
+end of pulses, safe values (heartbeat lost, interlocks, start and stop) and readback polls
+(`edge.output_upkeep`). Nothing a query carries
 can stop the queryable or the worker: every payload is decoded in full (`edge.cdr`), checked
 (`edge.command_check`), and anything unexpected is refused and counted.
 
@@ -15,9 +16,7 @@ retried command is applied at most once; the same id with a different command is
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import math
 import re
 import threading
 from collections import deque
@@ -28,17 +27,17 @@ from edge.cdr import decode, encode
 from edge.command_check import Refusal
 from edge.config.node import NodeConfig
 from edge.dead_man import HubWatch
-from edge.drivers.base import HardwareWatchdog, WithWatchdog
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.shared import SharedDevices
 from edge.drivers.table import create_output
-from edge.errors import DriverError, WireError
+from edge.errors import WireError
 from edge.event_publisher import EventPublisher
 from edge.interlocks import Change, Interlocks
 from edge.keys import Kind, SiteKeys
 from edge.messages import HubHeartbeat, OutputCommand, OutputState
 from edge.output_channel import OutputChannel, Pulse
 from edge.output_commands import CommandDesk
+from edge.output_upkeep import Upkeep
 from edge.schema import NAME
 
 log = logging.getLogger("fleetdaq.edge")
@@ -99,10 +98,10 @@ class OutputService:
         )
         self.safe_state = True
         self.safe_reason = "no hub heartbeat heard yet"
-        self._heard = False
+        self.heard = False
+        """The hub's heartbeat has been heard since start."""
         self._junk_reported = 0
-        self.watchdogs: list[HardwareWatchdog] = []
-        self._armed_watchdogs: set[int] = set()
+        self.upkeep = Upkeep(self.channels, events, self.control, clock, self)
         self._cond = threading.Condition()
         self._queries: deque[_Query] = deque()
         self._controls: deque[object] = deque()
@@ -242,7 +241,7 @@ class OutputService:
         self._post(_Control("lost", missing_s=missing_s))
 
     def _hub_back(self, beat: HubHeartbeat) -> None:
-        first, self._heard = not self._heard, True
+        first, self.heard = not self.heard, True
         self._post(_Control("back", first=first))
 
     def _interlock_changed(self, change: Change) -> None:
@@ -253,7 +252,12 @@ class OutputService:
 
     def _run(self) -> None:
         try:
-            self._startup()
+            self.upkeep.startup()
+        except Exception as err:  # the worker must live on: it answers and keeps things safe
+            log.exception("output start-up")
+            self.events.emit(
+                logging.CRITICAL, "outputs", "output_error", f"output start-up: {err!r}"
+            )
         finally:
             self.started.set()
         period = self.control.readback_period_s
@@ -264,19 +268,31 @@ class OutputService:
                 break
             try:
                 if isinstance(job, _Query):
-                    self._send(job.query, job.output, self.desk.decide(job.output, job.payload))
+                    self._answer(job)
                 elif isinstance(job, _Control):
                     self._apply_control(job)
-                self._end_pulses()
+                self.upkeep.end_pulses()
                 if self._now() >= next_poll:
-                    self._poll()
+                    self.upkeep.poll()
                     next_poll = max(next_poll + period, self._now())
             except Exception as err:  # keep answering: one failure must not end control
                 log.exception("output worker")
                 self.events.emit(
                     logging.ERROR, "outputs", "output_error", f"output worker: {err!r}"
                 )
-        self._shutdown()
+        self.upkeep.shutdown()
+
+    def _answer(self, job: _Query) -> None:
+        try:
+            payload = self.desk.decide(job.output, job.payload)
+        except Exception as err:  # a bug must not leave the asker waiting or stop the worker
+            log.exception("command on %s", job.output)
+            self.events.emit(
+                logging.ERROR, "outputs", "output_error", f"command on {job.output}: {err!r}"
+            )
+            why = Refusal("not_allowed", f"the edge failed on this command: {err!r}")
+            payload = encode(self.desk.reply(_try_decode(job.payload), job.output, why))
+        self._send(job.query, job.output, payload)
 
     def _now(self) -> float:
         return self.clock.monotonic_ns() / 1e9
@@ -296,114 +312,6 @@ class OutputService:
     def _pulses(self) -> list[Pulse]:
         return [ch.pulse for ch in self.channels.values() if ch.pulse is not None]
 
-    # -- start and stop --------------------------------------------------------------------
-
-    def _startup(self) -> None:
-        for name, ch in self.channels.items():
-            try:
-                ch.write(ch.cfg.initial_value)
-            except DriverError as err:
-                self.events.emit(
-                    logging.ERROR,
-                    name,
-                    "output_fault",
-                    f"{ch.driver.where}: could not set the initial value "
-                    f"{ch.cfg.initial_value:g}: {err}; retrying",
-                    output=name,
-                )
-        seen: set[int] = set()
-        for ch in self.channels.values():
-            if isinstance(ch.driver, WithWatchdog):
-                dog = ch.driver.hardware_watchdog()
-                if id(dog) not in seen:
-                    seen.add(id(dog))
-                    self.watchdogs.append(dog)
-        self._arm_watchdogs()
-        if self.channels:
-            self.events.emit(
-                logging.INFO,
-                "outputs",
-                "outputs_started",
-                f"{len(self.channels)} output(s) at their initial values; safe state until the "
-                f"hub's heartbeat is heard, then each output must be armed",
-                outputs=", ".join(f"{n}={c.value:g}" for n, c in self.channels.items()),
-            )
-
-    def _arm_watchdogs(self) -> None:
-        for dog in self.watchdogs:
-            if id(dog) in self._armed_watchdogs:
-                continue
-            try:
-                what = dog.arm(self.control.safe_after_s)
-            except (DriverError, OSError) as err:
-                self.events.emit(
-                    logging.WARNING,
-                    "outputs",
-                    "hardware_watchdog",
-                    f"{dog.where}: hardware watchdog not set: {err}; trying again when the "
-                    "device answers",
-                )
-                continue
-            self._armed_watchdogs.add(id(dog))
-            self.events.emit(logging.INFO, "outputs", "hardware_watchdog", what)
-
-    def _recovered(self, ch: OutputChannel) -> None:
-        """A device answers again: finish what could not be done while it did not."""
-        self.events.emit(
-            logging.INFO, ch.name, "output_recovered", f"{ch.driver.where} answers again"
-        )
-        if math.isnan(ch.value):  # never written: what start (or the safe state) wanted
-            value = ch.cfg.safe if self.safe_state and self._heard else ch.cfg.initial_value
-            try:
-                ch.write(value)
-            except DriverError as err:
-                self.events.emit(
-                    logging.ERROR, ch.name, "output_fault", f"writing {value:g} failed: {err}"
-                )
-        self._arm_watchdogs()
-
-    def _shutdown(self) -> None:
-        for ch in self.channels.values():
-            ch.pulse = None
-            ch.armed = False
-            try:
-                ch.write(ch.cfg.safe)
-            except DriverError as err:
-                self.events.emit(
-                    logging.ERROR, ch.name, "output_fault", f"safe value at stop failed: {err}"
-                )
-            ch.close()
-        if self.channels:
-            self.events.emit(
-                logging.INFO,
-                "outputs",
-                "outputs_stopped",
-                "outputs at their safe values: "
-                + ", ".join(f"{n}={c.readback:g}" for n, c in self.channels.items()),
-            )
-
-    # -- safe values -----------------------------------------------------------------------
-
-    def _to_safe(self, names: list[str], disarm: bool) -> dict[str, float]:
-        out: dict[str, float] = {}
-        for name in names:
-            ch = self.channels[name]
-            ch.pulse = None
-            if disarm:
-                ch.armed = False
-            try:
-                ch.write(ch.cfg.safe)
-            except DriverError as err:
-                self.events.emit(
-                    logging.CRITICAL,
-                    name,
-                    "output_fault",
-                    f"{ch.driver.where}: could not set the safe value {ch.cfg.safe:g}: {err}",
-                    output=name,
-                )
-            out[name] = ch.readback
-        return out
-
     def _apply_control(self, job: _Control) -> None:
         if not self.channels:  # nothing to guard: the state is kept, nothing to say
             self.safe_state = job.kind != "back"
@@ -412,7 +320,7 @@ class OutputService:
         if job.kind == "lost":
             self.safe_state = True
             self.safe_reason = f"no hub heartbeat for {job.missing_s:.1f} s"
-            done = self._to_safe(list(self.channels), disarm=True)
+            done = self.upkeep.to_safe(list(self.channels), disarm=True)
             self.events.emit(
                 logging.ERROR,
                 "outputs",
@@ -442,7 +350,7 @@ class OutputService:
                 return  # cleared again before the worker got to it
             names = [n for n in lock.cfg.outputs if n in self.channels]
             disarm = [n for n in names if self.channels[n].cfg.arm_required]
-            done = self._to_safe(names, disarm=False)
+            done = self.upkeep.to_safe(names, disarm=False)
             for name in disarm:
                 self.channels[name].armed = False
             self.events.emit(
@@ -453,65 +361,6 @@ class OutputService:
                 interlock=lock.name,
                 outputs=", ".join(f"{n}={v:g}" for n, v in done.items()),
             )
-
-    def _end_pulses(self) -> None:
-        now = self._now()
-        for ch in self.channels.values():
-            pulse = ch.pulse
-            if pulse is None or now < pulse.ends_s:
-                continue
-            ch.pulse = None
-            try:
-                ch.write(pulse.back_to)
-            except DriverError as err:
-                self.events.emit(
-                    logging.ERROR,
-                    ch.name,
-                    "pulse_end_failed",
-                    f"{ch.driver.where}: could not end the pulse of {pulse.command_id}: {err}",
-                    command_id=pulse.command_id,
-                    output=ch.name,
-                )
-                continue
-            self.events.emit(
-                logging.DEBUG,
-                ch.name,
-                "pulse_ended",
-                f"pulse {pulse.command_id} ended: back to {pulse.back_to:g}",
-                command_id=pulse.command_id,
-                output=ch.name,
-                value=f"{pulse.back_to:g}",
-            )
-
-    def _poll(self) -> None:
-        for ch in self.channels.values():
-            if not ch.poll_due():
-                continue
-            was_fault = ch.fault
-            ch.read_back()
-            if ch.fault and not was_fault:
-                self.events.emit(
-                    logging.ERROR, ch.name, "output_fault", f"readback failed: {ch.fault}"
-                )
-            elif was_fault and not ch.fault:
-                self._recovered(ch)
-            differs = ch.readback_differs()
-            if differs != ch.mismatch:
-                ch.mismatch = differs
-                level = logging.WARNING if differs else logging.INFO
-                tag = "readback_mismatch" if differs else "readback_matches"
-                self.events.emit(
-                    level,
-                    ch.name,
-                    tag,
-                    f"{ch.driver.where} reads back {ch.readback:g}, last written {ch.value:g}",
-                    output=ch.name,
-                    value=f"{ch.value:g}",
-                    readback=f"{ch.readback:g}",
-                )
-        for dog in self.watchdogs:
-            with contextlib.suppress(DriverError, OSError):  # the outputs' polls report it
-                dog.feed()
 
 
 def _try_decode(payload: bytes) -> OutputCommand | None:
