@@ -40,7 +40,9 @@ class OutputChannel:
         self.changed_s = -math.inf
         self.readback = math.nan
         self.readback_ns = 0
-        self.armed = False
+        self.armed = not cfg.arm_required
+        """An output with `arm_required` is armed by an operator before every use; any other is
+        armed from the start, and needs arming again only after a safe state."""
         self.pulse: Pulse | None = None
         self.commands = 0
         self.refused = 0

@@ -340,8 +340,8 @@ class OutputService:
                 logging.INFO,
                 "outputs",
                 "safe_state_cleared",
-                f"hub heartbeat {what}: commands are accepted for outputs once they are armed "
-                "(every output needs arming after start and after a safe state)",
+                f"hub heartbeat {what}: commands are accepted (an output must be armed first "
+                "when it has arm_required, and every output after a safe state)",
                 first=first,
             )
         elif job.kind == "interlock" and job.change is not None:

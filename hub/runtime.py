@@ -124,7 +124,14 @@ class HubRuntime:
             self._record_action,
         )
         self.snapshots = (
-            SnapshotBuffer(site, self.data_dir, self.bus, self.model, self.feed)
+            SnapshotBuffer(
+                site,
+                self.data_dir,
+                self.bus,
+                self.model,
+                self.feed,
+                lambda: self.recorder.recording,
+            )
             if site.hub.snapshot.enabled
             else None
         )

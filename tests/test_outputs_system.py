@@ -110,11 +110,13 @@ def test_outputs_start_at_their_safe_values_read_back_from_the_devices(rig: Rig)
     assert lamp["readback_source"] == "last_written"
 
 
-def test_after_the_hub_is_heard_every_output_needs_arming(rig: Rig) -> None:
-    for name in ("relay", "heater", "pump"):
-        reply = rig.double.command(name, "set", value=1.0)
-        assert reply["refusal"] == "not_armed", reply
-        assert reply["safe_state"] is False
+def test_after_the_hub_is_heard_only_arm_required_outputs_need_arming(rig: Rig) -> None:
+    reply = rig.double.command("pump", "set", value=1.0)
+    assert reply["refusal"] == "not_armed", reply
+    assert reply["safe_state"] is False
+    for name in ("relay", "heater"):
+        reply = rig.double.command(name, "read")
+        assert reply["armed"] is True, reply
 
 
 def test_every_refusal_reason_comes_back_through_the_real_queryable(rig: Rig) -> None:
