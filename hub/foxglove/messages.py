@@ -131,32 +131,34 @@ class StreamMessages:
         }
         frame = json.dumps(f"{node}/{stream}")
         keys = [json.dumps(f) for f in fields]
-        values = ",".join(f"{k}:%s" for k in keys)
-        self._template = (
-            '{"header":{"stamp":{"sec":%d,"nsec":%d},"frame_id":'
-            + frame
-            + '},"scans":%d,'
-            + values
-            + ',"min":{'
-            + values
-            + '},"max":{'
-            + values
-            + "}}"
-        )
+
+        def template(number: str) -> str:
+            values = ",".join(f"{k}:{number}" for k in keys)
+            return (
+                '{"header":{"stamp":{"sec":%d,"nsec":%d},"frame_id":' + frame + '},"scans":%d,'
+                + values + ',"min":{' + values + '},"max":{' + values + "}}"
+            )  # fmt: skip
+
+        # %.17g: every float64 round-trips exactly, formatted in C (no repr per value).
+        self._finite = template("%.17g")
+        self._any = template("%s")
 
     def encode(self, rows: Intervals) -> list[tuple[int, bytes]]:
         """(acquisition time ns, JSON bytes) per interval."""
         if not len(rows):
             return []
         cells = np.hstack([rows.mean, rows.lo, rows.hi])
-        number = repr if bool(np.isfinite(cells).all()) else _json_number
-        template = self._template
+        finite = bool(np.isfinite(cells).all())
         out = []
         for t, n, row in zip(
             rows.time_ns.tolist(), rows.scans.tolist(), cells.tolist(), strict=True
         ):
             sec, nsec = divmod(t, 1_000_000_000)
-            out.append((t, (template % (sec, nsec, n, *map(number, row))).encode()))
+            if finite:
+                text = self._finite % (sec, nsec, n, *row)
+            else:  # JSON has no NaN: null (the Plot panel skips it)
+                text = self._any % (sec, nsec, n, *map(_json_number, row))
+            out.append((t, text.encode()))
         return out
 
 

@@ -60,8 +60,8 @@ log = logging.getLogger("fleetdaq.foxglove")
 
 TICK_S: Final = 0.05
 """The server's time goes to the clients 20 times a second (while anyone subscribes)."""
-STATE_EVERY: Final = 20
-"""Ticks between two diagnostics / alarm tables: once a second."""
+STATE_PERIOD_S: Final = 1.0
+"""Diagnostics and the alarm table: once a second (the ticker's pace when nobody watches)."""
 FEED_QUEUE_BYTES: Final = 32 << 20
 
 FIXED_TOPICS: Final = {
@@ -223,8 +223,10 @@ class FoxgloveLive:
         if h.channel_names != st.names:
             self.counts["mismatched"] += 1
             return
-        if not plausible_time(h.first_sample_time_ns, time.time_ns()):
-            self.counts["implausible"] += 1  # an edge whose clock was never set
+        now = time.time_ns()
+        last_ns = h.first_sample_time_ns + h.scan_count * h.sample_period_ns
+        if not (plausible_time(h.first_sample_time_ns, now) and plausible_time(int(last_ns), now)):
+            self.counts["implausible"] += 1  # an edge whose clock was never set, or a lie
             return
         n = h.samples
         data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
@@ -258,14 +260,15 @@ class FoxgloveLive:
     # --- diagnostics, alarm table, time (the ticker's thread) ----------------------------------
 
     def _tick(self) -> None:
-        ticks = 0
-        while not self._stop.wait(TICK_S):
-            ticks += 1
+        next_state = time.monotonic() + STATE_PERIOD_S
+        while not self._stop.wait(TICK_S if self._subscriptions > 0 else STATE_PERIOD_S):
             try:
                 server = self._server
                 if server is not None and self._subscriptions > 0:
                     server.broadcast_time(time.time_ns())
-                if ticks % STATE_EVERY == 0:
+                now = time.monotonic()
+                if now >= next_state:
+                    next_state = now + STATE_PERIOD_S
                     self._publish_state()
             except Exception:
                 self.counts["errors"] += 1
