@@ -119,6 +119,22 @@ def test_where_batches_split_does_not_change_the_rows():
     np.testing.assert_array_equal(even.hi, ragged.hi)
 
 
+def test_an_interval_is_sent_once_when_the_fit_moves_a_batch_back():
+    period = 100_000.0  # 10 kS/s, 100 ms batches
+    t0 = 1_790_000_000_000_000_000
+    dec = Decimator(1)
+    data = np.ones((1000, 1))
+    first = dec.add(t0, period, data)
+    # The clock fit moved the next batch's start 7.3 ms back: into intervals already sent.
+    second = dec.add(t0 + 100_000_000 - 7_300_000, period, data)
+    keys = np.concatenate([first.time_ns, second.time_ns]) // INTERVAL_NS
+    assert (np.diff(keys) == 1).all(), "every interval once, in order, none skipped"
+    # A stream that restarts on a clock set back an hour starts afresh.
+    again = dec.add(t0 - 3600 * 10**9, period, data)
+    assert len(again) == 19
+    assert again.time_ns[0] == t0 - 3600 * 10**9
+
+
 def test_a_slow_stream_sends_every_scan_unchanged():
     period = 250_000_000.0  # 4 Hz
     t0 = 1_790_000_000_000_000_000
@@ -349,6 +365,36 @@ def test_every_stream_and_topic_is_advertised_with_a_schema_foxglove_reads(fleet
     assert c.channel("/log")["schemaName"] == "foxglove.Log"
 
 
+def _conforms(c: FoxgloveClient, topic: str, messages: list[Any]) -> None:
+    """Every message has the advertised schema's fields with values of their types (a number
+    may be null: no valid sample)."""
+    schema = json.loads(c.channel(topic)["schema"])
+    for m in messages:
+        _value(m, schema, topic)
+
+
+def _value(value: Any, schema: dict[str, Any], where: str) -> None:
+    kind = schema["type"]
+    if kind == "object":
+        assert isinstance(value, dict), where
+        assert set(value) <= set(schema["properties"]), (where, set(value))
+        for k, v in value.items():
+            _value(v, schema["properties"][k], f"{where}.{k}")
+    elif kind == "array":
+        assert isinstance(value, list), where
+        for i, v in enumerate(value):
+            _value(v, schema["items"], f"{where}[{i}]")
+    elif kind == "number":
+        assert value is None or type(value) in (int, float), where
+    elif kind == "integer":
+        assert type(value) is int, where
+        assert value >= schema.get("minimum", value), where
+    elif kind == "string":
+        assert isinstance(value, str), where
+    else:
+        assert type(value) is bool, where
+
+
 def _readable_by_lichtblick(schema: dict[str, Any], where: str) -> None:
     """The rules of Lichtblick's parseJsonSchema: objects with properties, one type per field,
     array items typed; nothing else."""
@@ -365,9 +411,11 @@ def _readable_by_lichtblick(schema: dict[str, Any], where: str) -> None:
                 _readable_by_lichtblick(item, f"{where}.{name}[]")
 
 
-def _recorded(data: Path, topic: str) -> list[Any]:
-    (session,) = [p for p in data.iterdir() if p.is_dir()]
-    files = sorted(session.glob("*.mcap"))
+def _recorded(fleet: Fleet, topic: str) -> list[Any]:
+    """`topic`'s messages in the closed files of the hub's session (not its snapshots)."""
+    status = fleet.status.status()
+    assert status is not None
+    files = sorted(Path(status["recorder"]["session_dir"]).glob("*.mcap"))
     assert files, "the hub closed no file yet"
     with AnyReader(files) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
@@ -384,6 +432,10 @@ def _scans(batches: list[Any]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(times).astype(np.int64), np.vstack(values)
 
 
+def channels_of(c: FoxgloveClient) -> list[str]:
+    return list(json.loads(c.channel("/wec/t8")["schema"])["properties"]["max"]["properties"])
+
+
 def _at_least(c: FoxgloveClient, sub: int, n: int) -> list[Received] | None:
     got = c.messages(sub)
     return got if len(got) >= n else None
@@ -395,6 +447,8 @@ def test_a_10_ks_stream_arrives_decimated_matching_the_recording(fleet: Fleet):
     got = c.wait(lambda: _at_least(c, sub, 800), 60, "4 s of /wec/t8")
     c.unsubscribe(sub)
     msgs = [m.json() for m in got]
+    _conforms(c, "/wec/t8", msgs)
+    assert all(set(m) == {"header", "scans", "min", "max", *channels_of(c)} for m in msgs)
     log_times = np.array([m.log_time_ns for m in got])
     stamps = np.array(
         [m["header"]["stamp"]["sec"] * 10**9 + m["header"]["stamp"]["nsec"] for m in msgs]
@@ -404,14 +458,20 @@ def test_a_10_ks_stream_arrives_decimated_matching_the_recording(fleet: Fleet):
     intervals = log_times // INTERVAL_NS
     assert (np.diff(intervals) >= 1).all(), "at most one message per 5 ms of acquisition time"
     assert np.median(np.diff(log_times)) == pytest.approx(INTERVAL_NS, abs=100_000)
-    channels = list(json.loads(c.channel("/wec/t8")["schema"])["properties"]["max"]["properties"])
+    channels = channels_of(c)
     # Checked against the raw samples the hub recorded (an independent decoder: rosbags).
     t, v = _recorded_until(fleet, int(log_times[-1]))
+    # Where the edge's clock fit started a batch a little before the previous one ended, the
+    # overlapping scans arrive for an interval the live view already sent: it leaves them out.
+    overlapped = set((t[1:][t[1:] <= np.maximum.accumulate(t)[:-1]] // INTERVAL_NS).tolist())
     checked = 0
     for m, t0 in zip(msgs, log_times, strict=True):
         end = (t0 // INTERVAL_NS + 1) * INTERVAL_NS
         sel = (t >= t0) & (t < end)
         if not sel.any():
+            continue
+        if t0 // INTERVAL_NS in overlapped:
+            assert m["scans"] <= sel.sum()
             continue
         assert m["scans"] == sel.sum()
         for i, ch in enumerate(channels):
@@ -419,7 +479,7 @@ def test_a_10_ks_stream_arrives_decimated_matching_the_recording(fleet: Fleet):
             assert m["min"][ch] == v[sel, i].min(), ch
             assert m["max"][ch] == v[sel, i].max(), ch
         checked += 1
-    assert checked >= 0.9 * len(msgs)
+    assert checked >= 0.8 * len(msgs), (checked, len(msgs), len(overlapped))
 
 
 def _recorded_until(fleet: Fleet, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
@@ -427,7 +487,7 @@ def _recorded_until(fleet: Fleet, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
 
     def enough() -> tuple[np.ndarray, np.ndarray] | None:
         try:
-            t, v = _scans(_recorded(fleet.data, "/wec/t8"))
+            t, v = _scans(_recorded(fleet, "/wec/t8"))
         except AssertionError:
             return None
         return (t, v) if t[-1] > t_ns else None
@@ -441,6 +501,7 @@ def test_a_4_hz_stream_arrives_scan_by_scan(fleet: Fleet):
     got = c.wait(lambda: _at_least(c, sub, 8), 60, "2 s of /am-cell/tc")
     c.unsubscribe(sub)
     msgs = [m.json() for m in got]
+    _conforms(c, "/am-cell/tc", msgs)
     assert all(m["scans"] == 1 for m in msgs)
     assert all(
         m["substrate"] is None or m["min"]["substrate"] == m["substrate"] == m["max"]["substrate"]
@@ -458,6 +519,7 @@ def test_diagnostics_has_one_status_per_node_the_panel_can_show(fleet: Fleet):
     (first, *_) = c.wait(lambda: c.messages(sub), 20, "a DiagnosticArray")
     c.unsubscribe(sub)
     msg = first.json()
+    _conforms(c, "/diagnostics", [msg])
     stamp = msg["header"]["stamp"]
     assert stamp["sec"] * 10**9 + stamp["nsec"] == first.log_time_ns
     names = [s["name"] for s in msg["status"]]
@@ -495,6 +557,7 @@ def test_events_and_the_log_carry_every_edge_start(fleet: Fleet):
         return events if {(e["node"], e["tag"]) for e in events} >= wanted else None
 
     events = c.wait(started, 30, "every edge's started event")
+    _conforms(c, "/events", events)
     e = next(e for e in events if (e["node"], e["tag"]) == ("wec", "started"))
     assert e["level_name"] == "info"
     assert e["level"] == 20
@@ -503,6 +566,7 @@ def test_events_and_the_log_carry_every_edge_start(fleet: Fleet):
     assert e["source"]
     assert all({"key", "value"} == set(kv) for kv in e["fields"])
     log = [m.json() for m in c.messages(fleet.log_sub)]
+    _conforms(c, "/log", log)
     assert any(x["name"].startswith("wec/") and "[started]" in x["message"] for x in log)
     assert {x["level"] for x in log} <= {1, 2, 3, 4, 5}
 
@@ -512,6 +576,7 @@ def test_alarm_transitions_are_published(fleet: Fleet):
     c = fleet.client
     got = c.wait(lambda: c.messages(fleet.alarms_sub), 90, "an alarm transition")
     a = got[0].json()
+    _conforms(c, "/alarms", [m.json() for m in got])
     assert all(a[k] for k in ("transition", "name", "severity", "state")), a
     assert a["time"].endswith("Z")
 

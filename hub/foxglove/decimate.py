@@ -10,9 +10,12 @@ or slower is not decimated: each scan is its own row (mean = min = max = the sam
 live view shows the exact values of a thermocouple or a humidity sensor.
 
 Intervals are aligned to absolute time (interval k covers [k * 5 ms, (k + 1) * 5 ms)), so the
-rows do not depend on where a batch starts or ends: an interval cut by a batch boundary is
-carried over and merged with the next batch's first scans (it is sent as soon as the next
-scan falls past it: a row is never held back longer than one batch).
+rows do not depend on where a batch starts or ends: a batch's last interval is held until the
+next batch, whose first scans may still fall in it (a row is never held back longer than one
+batch). An interval is sent once: scans that arrive for one already sent (the edge's clock fit
+moved a batch's start back by a few microseconds) are left out of the live view, and rows
+always advance in time; a batch entirely older than what was sent (the stream restarted on a
+clock that went back) starts the stream afresh.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import numpy.typing as npt
 MAX_MESSAGES_PER_S = 200
 INTERVAL_NS = 1_000_000_000 // MAX_MESSAGES_PER_S
 
+_NONE_SENT = -(1 << 62)
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
@@ -69,10 +73,15 @@ class Decimator:
         self.channels = channels
         self.interval_ns = interval_ns
         self._open: _Open | None = None
+        self._sent_key = _NONE_SENT
+        """The last interval sent (by `_by_interval`)."""
+        self._sent_ns = _NONE_SENT
+        """The last scan sent (by `_every_scan`)."""
 
     def reset(self) -> None:
-        """Forget the interval carried over (nobody is watching, or the stream restarted)."""
+        """Forget everything (nobody is watching, or the stream restarted)."""
         self._open = None
+        self._sent_key = self._sent_ns = _NONE_SENT
 
     def add(self, first_ns: int, period_ns: float, data: F64) -> Intervals:
         """`data` is (scans, channels); scan i was acquired at first_ns + i * period_ns."""
@@ -82,26 +91,26 @@ class Decimator:
         t = first_ns + np.rint(np.arange(scans) * period_ns).astype(np.int64)
         if period_ns >= self.interval_ns:
             return self._every_scan(t, data)
-        return self._by_interval(t, first_ns + round(scans * period_ns), data)
+        return self._by_interval(t, data)
 
     def _every_scan(self, t: I64, data: F64) -> Intervals:
-        rows = Intervals(t, data, data, data, np.ones(len(t), np.int64))
+        if int(t[-1]) <= self._sent_ns:
+            self.reset()  # all of it older than what was sent: a restart
         carried, self._open = self._open, None  # the stream slowed down: send what was open
-        if carried is None or carried.time_ns >= int(t[0]):
-            return rows
-        head = _closed(carried)
-        return Intervals(
-            np.concatenate([head.time_ns, rows.time_ns]),
-            np.concatenate([head.mean, rows.mean]),
-            np.concatenate([head.lo, rows.lo]),
-            np.concatenate([head.hi, rows.hi]),
-            np.concatenate([head.scans, rows.scans]),
-        )
+        keep = t > max(self._sent_ns, carried.time_ns if carried is not None else _NONE_SENT)
+        rows = _take(Intervals(t, data, data, data, np.ones(len(t), np.int64)), keep)
+        if carried is not None:
+            rows = _concat(_closed(carried), rows)
+        if len(rows):
+            self._sent_ns = int(rows.time_ns[-1])
+        return rows
 
-    def _by_interval(self, t: I64, next_ns: int, data: F64) -> Intervals:
+    def _by_interval(self, t: I64, data: F64) -> Intervals:
         # Scan times are sorted: each interval's first scan by a binary search, not a division
         # per scan. An interval is longer than a scan period here, so none is empty.
         first_key, last_key = int(t[0]) // self.interval_ns, int(t[-1]) // self.interval_ns
+        if last_key <= self._sent_key:
+            self.reset()  # all of it older than what was sent: a restart
         bounds = np.arange(first_key + 1, last_key + 1, dtype=np.int64) * self.interval_ns
         starts = np.concatenate([[0], np.searchsorted(t, bounds)]).astype(np.intp)
         keys = np.arange(first_key, last_key + 1, dtype=np.int64)
@@ -123,14 +132,15 @@ class Decimator:
             count = np.add.reduceat(valid.astype(np.int64), starts, axis=1).T
 
         carried, self._open = self._open, None
-        if carried is not None and carried.key == int(keys[0]):
-            total[0] += carried.total
-            count[0] += carried.valid
-            lo[0] = np.fmin(lo[0], carried.lo)
-            hi[0] = np.fmax(hi[0], carried.hi)
-            n[0] += carried.scans
-            times[0] = carried.time_ns
-        elif carried is not None and carried.key < int(keys[0]):
+        if carried is not None and first_key <= carried.key <= last_key:
+            at = carried.key - first_key  # the batch continues the open interval: merge
+            total[at] += carried.total
+            count[at] += carried.valid
+            lo[at] = np.fmin(lo[at], carried.lo)
+            hi[at] = np.fmax(hi[at], carried.hi)
+            n[at] += carried.scans
+            times[at] = min(int(times[at]), carried.time_ns)
+        elif carried is not None and carried.key < first_key:
             keys = np.concatenate([[carried.key], keys])
             times = np.concatenate([[carried.time_ns], times])
             total = np.vstack([carried.total, total])
@@ -138,23 +148,35 @@ class Decimator:
             lo = np.vstack([carried.lo, lo])
             hi = np.vstack([carried.hi, hi])
             n = np.concatenate([[carried.scans], n])
-        # (an open interval later than this batch: time went back, the stream restarted; dropped)
 
-        if next_ns // self.interval_ns == int(keys[-1]):  # the next scan still falls in it
-            self._open = _Open(
-                int(keys[-1]), int(times[-1]), total[-1], count[-1], lo[-1], hi[-1], int(n[-1])
-            )
-            times, total, count, lo, hi, n = (
-                times[:-1],
-                total[:-1],
-                count[:-1],
-                lo[:-1],
-                hi[:-1],
-                n[:-1],
-            )
+        # The batch's last interval stays open: the next batch may continue it.
+        self._open = _Open(
+            int(keys[-1]), int(times[-1]), total[-1], count[-1], lo[-1], hi[-1], int(n[-1])
+        )
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
-        return Intervals(times, mean, lo, hi, n)
+        keep = keys[:-1] > self._sent_key  # an interval is sent once
+        rows = _take(Intervals(times[:-1], mean[:-1], lo[:-1], hi[:-1], n[:-1]), keep)
+        if keep.any():
+            self._sent_key = int(keys[:-1][keep][-1])
+        return rows
+
+
+def _take(rows: Intervals, keep: npt.NDArray[np.bool_]) -> Intervals:
+    if keep.all():
+        return rows
+    return Intervals(rows.time_ns[keep], rows.mean[keep], rows.lo[keep], rows.hi[keep],
+                     rows.scans[keep])  # fmt: skip
+
+
+def _concat(a: Intervals, b: Intervals) -> Intervals:
+    return Intervals(
+        np.concatenate([a.time_ns, b.time_ns]),
+        np.concatenate([a.mean, b.mean]),
+        np.concatenate([a.lo, b.lo]),
+        np.concatenate([a.hi, b.hi]),
+        np.concatenate([a.scans, b.scans]),
+    )
 
 
 def _closed(o: _Open) -> Intervals:
