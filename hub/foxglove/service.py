@@ -168,9 +168,14 @@ class FoxgloveLive:
         self._running = True
         self._consumer.start()
         self._ticker.start()
-        log.info("Foxglove live view on ws://%s:%d", host, self._server.port)
+        log.info("Foxglove live view on ws://%s", self.listen)
 
     def stop(self) -> None:
+        if self._running:
+            log.info(
+                "Foxglove live view stopping: %s",
+                ", ".join(f"{k} {v}" for k, v in self.counts.items()),
+            )
         self._running = False
         self._stop.set()
         if self._ticker.is_alive():
@@ -190,11 +195,6 @@ class FoxgloveLive:
         if not self._consumer.alive:
             return "its batch-feed thread died"
         return None
-
-    @property
-    def port(self) -> int:
-        """The port it listens on (the configured one; useful with port 0)."""
-        return int(self._server.port) if self._server is not None else 0
 
     def _close_channels(self) -> None:
         for ch in [*(s.channel for s in self._streams.values()), *self._channels.values()]:
