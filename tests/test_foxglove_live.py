@@ -20,7 +20,7 @@ import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 
-from edge.config.load import parse_config
+from edge.config.load import load_config, parse_config
 from edge.config.site import demo_config_path
 from edge.wire import BatchEncoder, read_header
 from hub.batch_feed import BatchFeed, FedBatch
@@ -40,7 +40,9 @@ DIAGNOSTICS_PANEL_TYPES = {
     "ros.diagnostic_msgs.DiagnosticArray",
 }
 """What Lichtblick's Diagnostics panels accept (panels/diagnostics/constants.ts)."""
-DEMO_NODES = ("wec", "am-cell", "shore")
+DEMO = load_config(demo_config_path())
+DEMO_NODES = tuple(DEMO.nodes)
+DEMO_STREAMS = tuple((n, s) for n, cfg in DEMO.nodes.items() for s in cfg.streams)
 
 
 # --- the decimation ------------------------------------------------------------------------------
@@ -292,7 +294,7 @@ def _every_node_reporting(status: dict[str, Any]) -> bool:
         node_alive(status, node)
         and node in health
         and (stream_view(status, node, stream) or {}).get("batches", 0) > 0
-        for node, stream in (("wec", "t8"), ("am-cell", "tc"), ("shore", "env"))
+        for node, stream in DEMO_STREAMS
     )
 
 
@@ -345,7 +347,7 @@ def test_every_stream_and_topic_is_advertised_with_a_schema_foxglove_reads(fleet
     assert c.server_info is not None
     assert "time" in c.server_info["capabilities"]
     assert c.topics() == {
-        "/wec/t8", "/am-cell/tc", "/shore/env",
+        *(f"/{n}/{s}" for n, s in DEMO_STREAMS),
         "/events", "/log", "/alarms", "/alarms/current", "/diagnostics",
     }  # fmt: skip
     for ch in c.channels.values():
@@ -526,21 +528,20 @@ def test_diagnostics_has_one_status_per_node_the_panel_can_show(fleet: Fleet):
     assert sorted(names) == sorted(
         [*(f"fleetdaq/{n}" for n in DEMO_NODES), "fleetdaq/hub", "fleetdaq/alarms"]
     )
-    streams = {"wec": "t8", "am-cell": "tc", "shore": "env"}
     for s in msg["status"]:
         assert s["level"] in (0, 1, 2, 3), s
         assert s["message"], s
         keys = {kv["key"] for kv in s["values"]}
-        if s["name"].removeprefix("fleetdaq/") in streams:
-            node = s["name"].removeprefix("fleetdaq/")
-            stream = streams[node]
+        node = s["name"].removeprefix("fleetdaq/")
+        if node in DEMO_NODES:
             assert s["hardware_id"] == node
             assert s["level"] != 3, f"{node} is connected and reporting: {s['message']}"
             assert {
                 "version", "uptime", "cpu", "memory used", "disk spool free", "cpu temperature",
                 "clock state", "clock offset", "grandmaster",
-                f"{stream} rate", f"{stream} gaps", f"{stream} spool",
             } <= keys, (node, keys)  # fmt: skip
+            for stream in DEMO.nodes[node].streams:
+                assert {f"{stream} rate", f"{stream} gaps", f"{stream} spool"} <= keys, stream
     hub = next(s for s in msg["status"] if s["name"] == "fleetdaq/hub")
     assert {"version", "cpu", "disk data free", "recorder", "session"} <= {
         kv["key"] for kv in hub["values"]
@@ -643,7 +644,7 @@ def test_a_hub_whose_foxglove_port_is_taken_stops_with_one_line(tmp_path: Path):
 def test_no_sample_was_lost_meanwhile(fleet: Fleet):
     status = fleet.status.status()
     assert status is not None
-    for node, stream in (("wec", "t8"), ("am-cell", "tc"), ("shore", "env")):
+    for node, stream in DEMO_STREAMS:
         view = stream_view(status, node, stream)
         assert view is not None
         assert (view["gaps"], view["overflow"]) == (0, 0), view
