@@ -34,6 +34,7 @@ from hub.bus import EventBus
 from hub.commands import CommandService
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
+from hub.foxglove.service import FoxgloveLive
 from hub.heartbeat import Heartbeat
 from hub.hub_health import HubHealth
 from hub.live_plots import LivePlots
@@ -164,6 +165,7 @@ class HubRuntime:
                 self.commands,
                 self.rules,
                 self.recorder_requests,
+                *FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot),
                 self.heartbeat,
                 self.status,
             ]
