@@ -48,7 +48,10 @@ def _site(zenoh_port: int, fox_port: int, data: Path) -> str:
     text = t8_site_yaml(1, zenoh_port, str(data))
     web = f"127.0.0.1:{free_port()}"
     fox = f"127.0.0.1:{fox_port}"
-    dashboard = f"  dashboard: {{listen: {web}, foxglove: {{listen: {fox}}}}}\n"
+    dashboard = (
+        f"  dashboard: {{enabled: true, listen: {web},\n"
+        f"              foxglove: {{enabled: true, listen: {fox}}}}}\n"
+    )
     return text.replace("hub:\n", "hub:\n" + dashboard, 1)
 
 

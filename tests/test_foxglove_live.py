@@ -194,7 +194,7 @@ def _site(foxglove_port: int) -> str:
     return f"""\
 site: fox
 hub:
-  dashboard: {{foxglove: {{listen: "127.0.0.1:{foxglove_port}"}}}}
+  dashboard: {{foxglove: {{enabled: true, listen: "127.0.0.1:{foxglove_port}"}}}}
 nodes:
   wec:
     streams:
@@ -306,8 +306,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     site["hub"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
     site["hub"]["recorder"]["file_duration_s"] = 3
     site["hub"]["dashboard"] = {
+        "enabled": True,
         "listen": f"127.0.0.1:{free_port()}",
-        "foxglove": {"listen": f"127.0.0.1:{fox_port}"},
+        "foxglove": {"enabled": True, "listen": f"127.0.0.1:{fox_port}"},
     }
     cfg = tmp / "site.yaml"
     cfg.write_text(yaml.safe_dump(site))
