@@ -69,8 +69,10 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[dict, dict]]
             "demo",
             "--config",
             str(cfg),
+            # The faults are at fixed times after each edge starts (unplug at 4 s, back by ~6 s);
+            # an edge may take seconds to start on a loaded machine: room for both.
             "--duration",
-            "9",
+            "16",
             "--data",
             str(tmp / "rec"),
             "--json",
