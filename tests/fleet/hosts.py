@@ -7,6 +7,7 @@ Started by us, ended by their pid (SIGTERM, then SIGKILL), whatever happens."""
 
 from __future__ import annotations
 
+import contextlib
 import getpass
 import os
 import shutil
@@ -16,6 +17,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import psutil
 
 from tests.procs import REPO, free_port
 
@@ -122,13 +125,25 @@ class Sshd:
         return f"[127.0.0.1]:{self.port} {kind} {blob}"
 
     def stop(self) -> None:
+        """End this sshd and the per-connection sshds it forked, by their pids."""
+        sessions: list[psutil.Process] = []
         if self.popen.poll() is None:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                sessions = psutil.Process(self.popen.pid).children(recursive=True)
+            # Sessions still closing are given the time to: their listener reaps them.
+            _, sessions = psutil.wait_procs(sessions, timeout=5)
+            for p in sessions:
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    p.terminate()
             self.popen.send_signal(signal.SIGTERM)
             try:
                 self.popen.wait(10)
             except subprocess.TimeoutExpired:
                 self.popen.kill()
                 self.popen.wait()
+            for p in psutil.wait_procs(sessions, timeout=5)[1]:
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    p.kill()
         self._log.close()
 
     # --- the fleetdaq layout on this host ---------------------------------------------------
@@ -168,5 +183,24 @@ def bin_without(root: Path, *missing: str) -> Path:
     return folder
 
 
-def have_sshd() -> bool:
-    return SSHD.is_file() and shutil.which("ssh-keygen") is not None
+def ensure_sshd() -> None:
+    """Install Debian's openssh-server (sshd, ssh-keygen, ssh-keyscan) if missing: a missing
+    package is not a reason to skip (`.ci/run` installs it too). In a container without an
+    init the package's service is not started; the tests start their own sshds."""
+    if SSHD.is_file() and shutil.which("ssh-keyscan") is not None:
+        return
+    if shutil.which("apt-get") is None:
+        raise RuntimeError("OpenSSH's sshd is missing and there is no apt-get to install it")
+    for cmd in (
+        ["apt-get", "update", "-qq"],
+        ["apt-get", "install", "-y", "-qq", "openssh-server"],
+    ):
+        subprocess.run(
+            cmd,
+            check=False,
+            capture_output=True,
+            timeout=600,
+            env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
+        )
+    if not SSHD.is_file():
+        raise RuntimeError("could not install openssh-server with apt-get")

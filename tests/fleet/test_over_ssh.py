@@ -22,12 +22,8 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.fleet.hosts import SITE_FILE, USER, VENV, Sshd, bin_without, have_sshd, keygen
+from tests.fleet.hosts import SITE_FILE, USER, VENV, Sshd, bin_without, ensure_sshd, keygen
 from tests.procs import REPO, Proc, free_port, wait_for_port
-
-pytestmark = pytest.mark.skipif(
-    not have_sshd(), reason="needs OpenSSH's sshd (.ci/run installs it)"
-)
 
 SITE = """\
 site: fleettest
@@ -123,6 +119,7 @@ class Fleet:
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
+    ensure_sshd()
     root = tmp_path_factory.mktemp("fleet")
     home = root / "home"
     home.mkdir()
@@ -330,6 +327,9 @@ def test_a_host_whose_key_is_not_known_is_refused_with_how_to_add_it(fleet: Flee
     ).stdout
     with known.open("a") as f:
         f.write(scan)
+    # As Debian's ssh writes it (HashKnownHosts yes): hashed names are found too.
+    subprocess.run(["ssh-keygen", "-H", "-f", str(known)], capture_output=True, check=True)
+    assert "[127.0.0.1]" not in known.read_text()
     again = fleet.status(inv, "--json", known=known)
     assert again.returncode == 0, again.stdout + again.stderr
 
@@ -464,3 +464,29 @@ def test_logs_refuse_a_unit_the_host_does_not_run_and_an_unknown_host(fleet: Fle
     r = fleet.run("logs", "-i", str(inv), *args, "nowhere")
     assert r.returncode == 2
     assert r.stderr == f"{inv}: no host or node 'nowhere' (hosts: hub, pi-a, edge-b)\n"
+
+
+def test_a_hub_host_whose_hub_is_down_is_unhealthy_and_says_why(fleet: Fleet, tmp_path: Path):
+    public = (fleet.key.with_name(fleet.key.name + ".pub")).read_text().strip()
+    lonely = Sshd(tmp_path / "lonely", public)
+    try:
+        lonely.install_fleetdaq(SITE.format(port=free_port()))  # no hub listens there
+        inv = fleet.inventory("hub-down", hub={"hub": fleet.host(lonely)})
+        known = fleet.known(
+            "hub-down",
+            lonely.known_hosts_line(),
+            fleet.a.known_hosts_line(),
+            fleet.b.known_hosts_line(),
+        )
+        r = fleet.status(inv, "--json", known=known)
+    finally:
+        lonely.stop()
+    assert r.returncode == 1, r.stdout + r.stderr
+    hosts = _hosts(r.stdout)
+    hub = hosts["hub"]
+    assert hub["reachable"]
+    assert hub["recorder"] is None
+    (problem,) = hub["problems"]
+    assert problem.startswith("recorder: cannot reach the hub at tcp/127.0.0.1:"), problem
+    assert hosts["pi-a"]["healthy"]
+    assert hosts["edge-b"]["healthy"]
