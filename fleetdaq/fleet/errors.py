@@ -23,6 +23,7 @@ class Unreachable(Enum):
     AUTH = "auth failed"
     HOST_KEY_UNKNOWN = "host key unknown"
     HOST_KEY_CHANGED = "host key changed"
+    HOST_KEY_REVOKED = "host key revoked"
     SSH = "ssh error"
 
 

@@ -1,9 +1,10 @@
 """An SSH connection to a fleet host (paramiko), its host key verified, and commands on it.
 
 Host keys are checked against ``~/.ssh/known_hosts``, ``/etc/ssh/ssh_known_hosts`` and any
-file given with ``--known-hosts``, under the name ssh itself records (``[address]:port`` off
-port 22). An unknown host is refused with how to add it; a changed key is refused with both
-fingerprints. Nothing is ever written to a known_hosts file. Keys come from the SSH agent and
+file given with ``--known-hosts`` (`known_hosts`), under the name ssh itself records
+(``[address]:port`` off port 22). An unknown host is refused with how to add it; a changed key
+is refused with both fingerprints; a revoked one is refused. Nothing is ever written to a
+known_hosts file. Keys come from the SSH agent and
 ``~/.ssh/id_*`` as with ``ssh``, plus ``--identity`` and ``ansible_ssh_private_key_file``.
 
 Every way of not getting in becomes one `SshError` whose kind says why (`classify`).
@@ -27,6 +28,7 @@ import paramiko
 
 from fleetdaq.fleet.errors import CommandTimeout, SshError, Unreachable
 from fleetdaq.fleet.inventory import Host
+from fleetdaq.fleet.known_hosts import KnownHosts
 
 SYSTEM_KNOWN_HOSTS = Path("/etc/ssh/ssh_known_hosts")
 
@@ -34,14 +36,13 @@ SYSTEM_KNOWN_HOSTS = Path("/etc/ssh/ssh_known_hosts")
 @dataclass(frozen=True, slots=True)
 class SshOptions:
     known_hosts: tuple[Path, ...] = ()
-    """Files checked besides ``~/.ssh/known_hosts`` and ``/etc/ssh/ssh_known_hosts``."""
+    """Files read besides ``~/.ssh/known_hosts`` and ``/etc/ssh/ssh_known_hosts``."""
     identity: str | None = None
     """A private key tried for every host (besides the agent's and ``~/.ssh/id_*``)."""
 
     def known_hosts_files(self) -> list[Path]:
         user = Path(os.path.expanduser("~/.ssh/known_hosts"))
-        found = [p for p in (user, SYSTEM_KNOWN_HOSTS) if p.is_file()]
-        return found + [p for p in self.known_hosts if p not in found]
+        return [user, SYSTEM_KNOWN_HOSTS, *self.known_hosts]
 
     def add_hint_file(self) -> str:
         """Where the hint says to add a key: the --known-hosts file, else the user's."""
@@ -63,19 +64,23 @@ def known_hosts_name(host: Host) -> str:
 
 
 class _UnknownHostKey(Exception):
-    def __init__(self, key: paramiko.PKey) -> None:
-        super().__init__("unknown host key")
+    def __init__(self, key: paramiko.PKey, revoked: bool) -> None:
+        super().__init__("revoked host key" if revoked else "unknown host key")
         self.key = key
+        self.revoked = revoked
 
 
 class _RefuseUnknown(paramiko.MissingHostKeyPolicy):
     """Never accept a key that no known_hosts file has (paramiko's RejectPolicy, but keeping
-    the key so that the message can show its fingerprint)."""
+    the key so that the message can show its fingerprint), nor a revoked one."""
+
+    def __init__(self, known: KnownHosts) -> None:
+        self.known = known
 
     def missing_host_key(
         self, client: paramiko.SSHClient, hostname: str, key: paramiko.PKey
     ) -> None:
-        raise _UnknownHostKey(key)
+        raise _UnknownHostKey(key, self.known.is_revoked(key))
 
 
 def _fingerprint(key: paramiko.PKey) -> str:
@@ -88,6 +93,12 @@ def classify(err: BaseException, host: Host, options: SshOptions, timeout: float
     user = host.user or getpass.getuser()
     name = known_hosts_name(host)
     port = f" -p {host.port}" if host.port != 22 else ""
+    if isinstance(err, _UnknownHostKey) and err.revoked:
+        return SshError(
+            Unreachable.HOST_KEY_REVOKED,
+            f"host key of {name} ({_fingerprint(err.key)}) is marked @revoked in known_hosts: "
+            f"refused",
+        )
     if isinstance(err, _UnknownHostKey):
         return SshError(
             Unreachable.HOST_KEY_UNKNOWN,
@@ -239,9 +250,8 @@ def connect(host: Host, options: SshOptions, timeout: float) -> Connection:
     client = paramiko.SSHClient()
     start = time.monotonic()
     try:
-        for path in options.known_hosts_files():
-            client.load_system_host_keys(str(path))
-        client.set_missing_host_key_policy(_RefuseUnknown())
+        known = KnownHosts.load(options.known_hosts_files(), into=client.get_host_keys())
+        client.set_missing_host_key_policy(_RefuseUnknown(known))
         keys = [os.path.expanduser(k) for k in (host.identity, options.identity) if k]
         for key in keys:
             if not os.path.isfile(key):

@@ -144,7 +144,13 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
         )
         wait_for_port(port, timeout=60)
         known = root / "all.known_hosts"
-        known.write_text("".join(s.known_hosts_line() + "\n" for s in started))
+        # What real files hold besides plain lines: a CA, a line of some other tool, a comment.
+        odd = (
+            f"@cert-authority *.example.com {public}\n"
+            "garbage ssh-ed25519 not-base64!!\n"
+            "# a comment\n"
+        )
+        known.write_text(odd + "".join(s.known_hosts_line() + "\n" for s in started))
         yield Fleet(root, home, key, site, hub, a, b, spool_a, spool_b, known, hub_proc)
     finally:
         if hub_proc is not None:
@@ -360,6 +366,24 @@ def test_a_changed_host_key_is_refused_with_both_fingerprints(fleet: Fleet):
     assert hosts["edge-b"]["healthy"]
 
 
+def test_a_revoked_host_key_is_refused_even_when_listed(fleet: Fleet):
+    known = fleet.known(
+        "revoked",
+        fleet.hub.known_hosts_line(),
+        fleet.a.known_hosts_line(),
+        fleet.b.known_hosts_line(),
+        "@revoked * " + fleet.b.host_key_public,
+    )
+    r = fleet.status(fleet.inventory("full"), "--json", known=known)
+    assert r.returncode == 1, r.stdout + r.stderr
+    hosts = _hosts(r.stdout)
+    b = hosts["edge-b"]
+    assert b["unreachable"]["kind"] == "host key revoked"
+    assert f"host key of [127.0.0.1]:{fleet.b.port}" in b["unreachable"]["message"]
+    assert hosts["hub"]["healthy"]
+    assert hosts["pi-a"]["healthy"]
+
+
 def test_a_key_the_host_does_not_accept_is_auth_failed(fleet: Fleet):
     stranger = fleet.root / "stranger_ed25519"
     keygen(stranger)
@@ -426,7 +450,10 @@ def test_an_inventory_that_does_not_match_the_site_is_one_line_per_mismatch(flee
     assert r.stdout == ""
 
 
-def test_logs_of_a_host_without_journalctl_say_so(fleet: Fleet, tmp_path: Path):
+def test_a_bare_host_says_fleetdaq_is_missing_and_it_has_no_journalctl(
+    fleet: Fleet, tmp_path: Path
+):
+    """A host reachable over SSH with nothing of fleetdaq's on it and no systemd tools."""
     root = tmp_path / "bare"
     public = (fleet.key.with_name(fleet.key.name + ".pub")).read_text().strip()
     bare = Sshd(root, public, path_env=str(bin_without(tmp_path, "journalctl", "systemctl")))
@@ -438,6 +465,18 @@ def test_logs_of_a_host_without_journalctl_say_so(fleet: Fleet, tmp_path: Path):
         assert r.returncode == 1, r.stdout + r.stderr
         assert r.stderr.startswith("bare has no journalctl: it keeps no systemd journal"), r.stderr
         assert r.stdout == ""
+
+        status = fleet.status(inv, "--json", known=known)
+        assert status.returncode == 1, status.stdout + status.stderr
+        host = _hosts(status.stdout)["bare"]
+        assert host["reachable"]
+        assert host["systemd"] is False
+        assert host["version"] is None
+        assert host["spool_bytes"] is None
+        assert host["problems"] == [
+            f"no site file at {bare.fs}{SITE_FILE}",
+            f"fleetdaq is not installed at {bare.fs}{VENV}/bin/fleetdaq",
+        ]
     finally:
         bare.stop()
 
