@@ -114,7 +114,10 @@ def fleet_status(
             for line in lines:
                 click.echo(line, err=True)
             sys.exit(2)
-    status = collect(inv, site, _options(known_hosts, identity), timeout, parallel)
+    try:
+        status = collect(inv, site, _options(known_hosts, identity), timeout, parallel)
+    except KeyboardInterrupt:
+        sys.exit(130)
     if as_json:
         click.echo(json.dumps(status.to_dict(), indent=2))
     else:

@@ -4,8 +4,10 @@ YAML inventory — one concern per module:
 - `inventory`: the inventory file into typed hosts (Ansible's variable precedence);
 - `site_match`: the inventory against a site file (every node has a host and back);
 - `layout`: where fleetdaq's files are on a host (venv, site file, spool, recordings);
-- `ssh`: a verified SSH connection (known_hosts, never accepted silently) and its commands;
+- `known_hosts`: known_hosts files read as ssh reads them;
+- `ssh`: a verified SSH connection (never a key accepted silently) and its commands;
 - `facts`: the shell script run on a host and the parsing of what it prints;
-- `probe`: one host's status; `collect`: every host in parallel;
-- `report`: the table; `journal`: ``journalctl`` over SSH.
+- `probe`: one host's status; `collect`: every host in parallel; `status`: what was found and
+  the verdict;
+- `report`: the table; `journal`: ``journalctl`` over SSH; `errors`: the error tree.
 """
