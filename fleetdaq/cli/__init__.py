@@ -15,6 +15,7 @@ COMMANDS: dict[str, str] = {
     "demo": "fleetdaq.cli.demo:demo",
     "edge": "fleetdaq.cli.edge:edge",
     "export": "fleetdaq.cli.export:export",
+    "fleet": "fleetdaq.cli.fleet:fleet",
     "hub": "fleetdaq.cli.hub:hub",
     "import-modaq": "fleetdaq.cli.import_modaq:import_modaq",
     "out": "fleetdaq.cli.out:out",
