@@ -365,7 +365,8 @@ def middlewares(stats: WebStats) -> list[Any]:
                 {"ok": False, "error": "internal error (logged on the hub)"}, status=500
             )
         _count(stats, resp.status)
-        _secure(resp)
+        if not resp.prepared:  # a WebSocket has sent its headers already
+            _secure(resp)
         return resp
 
     return [guard]

@@ -67,7 +67,7 @@ class PlotRequest:
         return (self.stream, self.channels, self.width, self.span_s)
 
 
-@dataclass(slots=True)
+@dataclass(slots=True, eq=False)
 class Client:
     ws: web.WebSocketResponse
     user: str
@@ -224,9 +224,9 @@ class Live:
         self.stats.ws_clients = len(self.clients)
         sender = asyncio.create_task(self._send(client), name="dash-send")
         self._senders.add(sender)
-        client.offer_events(self.events.since(0, 200))
-        self._state_for(client)
         try:
+            client.offer_events(self.events.since(0, 200))
+            self._state_for(client)
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     self._on_message(client, msg.data)
@@ -235,6 +235,11 @@ class Live:
                 if client.bad > MAX_BAD_MESSAGES:
                     await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"too many errors")
                     break
+        except Exception:  # after the upgrade no HTTP answer can go out: log, close, go on
+            self.stats.server_errors += 1
+            log.exception("dashboard: a live connection failed")
+            with contextlib.suppress(Exception):
+                await ws.close(code=WSCloseCode.INTERNAL_ERROR, message=b"internal error")
         finally:
             self.clients.discard(client)
             self.stats.ws_clients = len(self.clients)
