@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "ptp": "fleetdaq.cli.ptp:ptp",
     "report": "fleetdaq.cli.report:report",
     "rules": "fleetdaq.cli.rules:rules",
+    "users": "fleetdaq.cli.users:users",
     "verify": "fleetdaq.cli.verify:verify",
 }
 """Sub-command -> ``"module:attribute"``, imported when the sub-command runs."""

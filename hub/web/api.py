@@ -259,10 +259,14 @@ class Api:
             raise fail(400, "width must be an integer and span_s a number") from None
         if not math.isfinite(span_s):
             raise fail(400, "span_s must be a finite number")
+        info = self.parts.live_plots.streams().get(stream)
+        if info is None:
+            raise fail(404, f"no stream {stream!r} (NODE/STREAM)")
+        unknown = [c for c in channels or [] if c not in info["channels"]]
+        if unknown:
+            raise fail(404, f"no stream {stream!r} channel(s) {', '.join(unknown)}")
         try:
             frame = self.parts.live_plots.frame(stream, channels, width, span_s)
-        except KeyError:
-            raise fail(404, f"no stream {stream!r} with channel(s) {channels or 'all'}") from None
         except ValueError as err:
             raise fail(400, str(err)) from None
         return web.json_response({"ok": True, **frame})

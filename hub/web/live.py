@@ -252,9 +252,13 @@ class Live:
     def _on_message(self, client: Client, data: str) -> None:
         try:
             msg = json.loads(data)
+        except (ValueError, RecursionError):
+            self._refuse(client, "not JSON")
+            return
+        try:
             plots = parse_plots(msg, self.parts.live_plots.streams(), self.window_s)
-        except (ValueError, RecursionError) as err:
-            self._refuse(client, str(err) if isinstance(err, ValueError) else "not JSON")
+        except ValueError as err:
+            self._refuse(client, str(err))
             return
         client.plots = {p.id: p for p in plots}
         client.sent_latest = {}

@@ -39,7 +39,8 @@ def http(
 ) -> tuple[int, dict[str, Any]]:
     """A plain HTTP request (not the browser's): status and JSON body."""
     data = json.dumps(body).encode() if body is not None else None
-    req = urllib.request.Request(url, data=data, headers=headers or {}, method="POST" if data else "GET")
+    method = "POST" if data is not None else "GET"
+    req = urllib.request.Request(url, data=data, headers=headers or {}, method=method)
     try:
         with urllib.request.urlopen(req, timeout=10) as r:
             return r.status, json.loads(r.read() or b"{}")
@@ -96,7 +97,7 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         console: list[str] = []
         page.on("request", lambda r: requests.append(r.url))
         page.on("requestfailed", lambda r: failed.append(f"{r.url}: {r.failure}"))
-        page.on("console", lambda m: console.append(f"{m.type}: {m.text}") if m.type == "error" else None)
+        page.on("console", lambda m: console.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: console.append(f"pageerror: {e}"))
         result["requests"], result["failed_requests"], result["console_errors"] = (
             requests, failed, console,
@@ -111,8 +112,7 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         streams = wait_rows(
             page,
             "Streams",
-            lambda r: {x[0] for x in r} >= set(args["streams"])
-            and all(x[2] != "0" for x in r),
+            lambda r: {x[0] for x in r} >= set(args["streams"]) and all(x[2] != "0" for x in r),
             "every stream with batches",
         )
         result["streams"] = streams
@@ -123,8 +123,10 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
 
         first = values()
         page.wait_for_function(
-            """([name, first]) => Array.from(document.querySelectorAll('table[aria-label="Streams"] tbody tr'))
-                .some((tr) => tr.cells[0].textContent === name && tr.cells[6].textContent !== first)""",
+            """([name, first]) => Array.from(
+                    document.querySelectorAll('table[aria-label="Streams"] tbody tr')
+                ).some((tr) => tr.cells[0].textContent === name
+                    && tr.cells[6].textContent !== first)""",
             arg=[args["fast_stream"], first],
         )
         result["values"] = [first, values()]
@@ -135,7 +137,8 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         page.wait_for_function(f"() => window.fleetdaq.stats.drawn >= {d0 + 30}")
         result["plot_fps"] = 30 / (time.monotonic() - t0)
         result["plots"] = page.evaluate(
-            "() => Array.from(document.querySelectorAll('canvas')).map((c) => c.getAttribute('aria-label'))"
+            "() => Array.from(document.querySelectorAll('canvas'))"
+            ".map((c) => c.getAttribute('aria-label'))"
         )
         page.screenshot(path=str(out / "dashboard.png"), full_page=False)
 
@@ -167,7 +170,9 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         result["ack_without_csrf"] = page_fetch(
             page, "/api/alarms", {"action": "ack", "names": [name]}, {}
         )
-        csrf = page.evaluate("() => fetch('/api/session').then((r) => r.json()).then((s) => s.csrf)")
+        csrf = page.evaluate(
+            "() => fetch('/api/session').then((r) => r.json()).then((s) => s.csrf)"
+        )
         cookie = "; ".join(f"{c['name']}={c['value']}" for c in page.context.cookies())
         result["ack_foreign_origin"] = http(
             url + "api/alarms",

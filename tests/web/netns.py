@@ -50,9 +50,8 @@ def ensure_chromium() -> None:
     if shutil.which("apt-get") is None:
         raise AssertionError(f"{CHROMIUM} is missing and there is no apt-get to install it")
     subprocess.run(["apt-get", "update", "-qq"], check=False, capture_output=True, timeout=600)
-    subprocess.run(
-        ["apt-get", "install", "-y", "-qq", "chromium"], check=False, capture_output=True, timeout=900
-    )
+    install = ["apt-get", "install", "-y", "-qq", "chromium"]
+    subprocess.run(install, check=False, capture_output=True, timeout=900)
     if not Path(CHROMIUM).exists():
         raise AssertionError("could not install Debian's chromium with apt-get")
 
