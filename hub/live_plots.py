@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -140,6 +141,9 @@ class LivePlots:
             raise ValueError(f"span must be more than 0 and at most {self.window_s:g} s")
         node, _, name = stream.partition("/")
         ring = self._rings[(node, name)]
+        unknown = [c for c in channels or () if c not in ring.channels]
+        if unknown:
+            raise KeyError(f"{stream} has no channel {', '.join(unknown)}")
         cols = [ring.channels.index(c) for c in channels] if channels else list(
             range(len(ring.channels))
         )  # fmt: skip
@@ -157,8 +161,8 @@ class LivePlots:
         count = len(wanted)
         column = (np.arange(count) * width) // max(count, 1)
         edges = np.flatnonzero(np.diff(column, prepend=-1))
-        with np.errstate(invalid="ignore"), np.testing.suppress_warnings() as sup:
-            sup.filter(RuntimeWarning)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: no sample there
             plo = np.fmin.reduceat(lo, edges, axis=0) if count else np.empty((0, len(cols)))
             phi = np.fmax.reduceat(hi, edges, axis=0) if count else np.empty((0, len(cols)))
         px = column[edges]

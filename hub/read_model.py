@@ -62,6 +62,8 @@ class RecorderView:
     session_dir: str = ""
     current_file: str = ""
     current_file_bytes: int = 0
+    bytes_written: int = 0
+    """Bytes of every file this hub finished or is writing, since it started (all sessions)."""
     files: tuple[str, ...] = ()
     abandoned_files: tuple[str, ...] = ()
     write_errors: int = 0

@@ -93,6 +93,8 @@ class Recorder:
         self.streams = {(st.node, st.stream): st for st in self.routes.values()}
         self.refused = refused
         self.feed = feed or BatchFeed()
+        self._bytes_before = 0
+        """Bytes of the sessions before the current one (stop and start make a new one)."""
         self.tap: Tap | None = None
         """Also handed every message recorded besides batches (the snapshot buffer), on the
         writer thread, whether or not the recorder is recording. Must be quick."""
@@ -168,7 +170,11 @@ class Recorder:
 
         assert self.session is not None
         own = self.session.dir
-        for f in sorted(self.data_dir.glob("*/*.mcap.active")):
+        crashed = [
+            *self.data_dir.glob("*/*.mcap.active"),
+            *self.data_dir.glob("snapshots/*/*.active"),
+        ]
+        for f in sorted(crashed):
             if f.parent == own:
                 continue
             try:
@@ -579,6 +585,7 @@ class Recorder:
                 session_dir=str(s.dir) if s is not None else "",
                 current_file=str(current) if current is not None else "",
                 current_file_bytes=size,
+                bytes_written=self._bytes_before + (s.closed_bytes if s is not None else 0) + size,
                 files=tuple(str(p) for p in s.files()) if s is not None else (),
                 abandoned_files=tuple(str(p) for p in s.abandoned) if s is not None else (),
                 write_errors=self.write_errors,
@@ -641,6 +648,8 @@ class Recorder:
         with self.lock:
             if self.recording:
                 return "already recording"
+            if self.session is not None:
+                self._bytes_before += self.session.closed_bytes
             self.session = self._new_session()
             self.recording = True
             name = self.session.name

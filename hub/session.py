@@ -86,6 +86,8 @@ class FileStats:
     start_ns: int | None = None
     end_ns: int | None = None
     per_topic: dict[str, int] = field(default_factory=dict)
+    bytes: int = 0
+    """The finished file's size."""
     publish_spans: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Per topic, the earliest and latest `publish_time` written (acquisition time)."""
 
@@ -147,6 +149,7 @@ class _OpenFile:
         self.writer.add_metadata(FILE_INDEX_METADATA, self.stats.index_metadata())
         self.writer.finish()  # type: ignore[no-untyped-call]
         self.fh.flush()
+        self.stats.bytes = self.fh.tell()
         os.fsync(self.fh.fileno())
         self.fh.close()
         os.replace(self.active, self.path)
@@ -184,6 +187,7 @@ class RecordingSession:
                 self.name = f"{base}_{n}"
         self.dir = root / self.name
         self.closed: list[FileStats] = []
+        self.closed_bytes = 0
         self.abandoned: list[Path] = []
         self.topic_types: dict[str, str] = {}
         self._file: _OpenFile | None = None
@@ -280,6 +284,7 @@ class RecordingSession:
             self.abandoned.append(f.active)
             raise
         self.closed.append(f.stats)
+        self.closed_bytes += f.stats.bytes
         self.write_rosbag2_metadata()
         log.info("closed %s (%d messages)", f.path.name, f.stats.messages)
 

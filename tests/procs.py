@@ -163,6 +163,12 @@ def stream_view(status: dict[str, Any], node: str, stream: str) -> dict[str, Any
     )
 
 
+def sessions(data: Path) -> list[Path]:
+    """The recording sessions under a hub's data folder (named by their UTC start; not the
+    ``snapshots`` folder, the outbox, ...)."""
+    return sorted(p for p in data.iterdir() if p.is_dir() and p.name[:1].isdigit())
+
+
 def node_alive(status: dict[str, Any], node: str) -> bool:
     return any(n["node"] == node and n["alive"] for n in status.get("nodes", []))
 

@@ -37,6 +37,7 @@ from tests.procs import (
     HubClient,
     Proc,
     free_port,
+    sessions,
     spooled,
     stream_view,
     wait_for_port,
@@ -473,7 +474,7 @@ def test_a_full_hub_disk_is_an_event_and_recording_resumes_when_space_returns(
     assert abandoned, "the file being written when the disk filled was abandoned"
     assert all(f.name.endswith(".mcap.active") for f in abandoned)
     # What the abandoned files hold is recoverable; with them, nothing is lost.
-    reports = verify_path(next(p for p in rig.data.iterdir() if p.is_dir()), recover=True)
+    reports = verify_path(sessions(rig.data)[0], recover=True)
     assert {r.status for r in reports} <= {"ok", "recovered"}, [r.line() for r in reports]
     assert sum(r.status == "recovered" for r in reports) == len(abandoned)
     _nothing_lost(rig)

@@ -17,7 +17,14 @@ from rosbags.typesys import get_types_from_msg
 
 from edge import __version__
 from edge.cdr import SEPARATOR, encode
-from edge.messages import HUB_HEARTBEAT_TYPE, HubHeartbeat
+from edge.messages import (
+    COMMAND_RECORD_TYPE,
+    HUB_HEARTBEAT_TYPE,
+    CommandRecord,
+    HubHeartbeat,
+    OutputCommand,
+    OutputReply,
+)
 from hub.session import SCHEMAS, RecordingSession
 from tests.analysis.recordings import (
     alarm_message,
@@ -68,6 +75,16 @@ def test_the_msg_files_are_the_schemas_embedded_in_a_recording(tmp_path: Path):
     s2 = RecordingSession(tmp_path / "hb", "demo", ["wec"], s.cfg, "site: demo\n", t0)
     s2.write(
         "/hub/heartbeat", encode(HubHeartbeat(t0, "0.1.0", "x", 1)), t0, t0, HUB_HEARTBEAT_TYPE
+    )
+    cmd = OutputCommand("c1", "heater", "set", 1.0, 0.0, "operator", "ann@hmi", "", t0, 0.0)
+    reply = OutputReply("c1", "heater", "set", True, "", "", 1.0, 1.0, t0, "device", True, False,
+                        (), t0)  # fmt: skip
+    s2.write(
+        "/wec/commands",
+        encode(CommandRecord(cmd, reply, "wec", t0, t0)),
+        t0,
+        t0,
+        COMMAND_RECORD_TYPE,
     )
     s2.close()
     seen: set[str] = set()

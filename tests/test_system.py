@@ -12,7 +12,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from hub.session import ACTIVE_SUFFIX
-from tests.procs import Proc, free_port, wait_for_port
+from tests.procs import Proc, free_port, sessions, wait_for_port
 
 RUN_S = 10.0
 SITE = """\
@@ -68,7 +68,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, 
         assert codes == {"wec": 0, "am-cell": 0, "hub": 0}, {
             p.log_path.stem: p.output()[-2000:] for p in procs
         }
-        (session,) = [p for p in data.iterdir() if p.is_dir()]
+        (session,) = sessions(data)
         yield session, procs
     finally:
         for p in procs:

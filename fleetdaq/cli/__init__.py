@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "import-modaq": "fleetdaq.cli.import_modaq:import_modaq",
     "out": "fleetdaq.cli.out:out",
     "ptp": "fleetdaq.cli.ptp:ptp",
+    "rec": "fleetdaq.cli.rec:rec",
     "report": "fleetdaq.cli.report:report",
     "rules": "fleetdaq.cli.rules:rules",
     "users": "fleetdaq.cli.users:users",

@@ -15,7 +15,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, open_client
+from fleetdaq.cli.common import fail, hub_request
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
 _UNITS = {None: 1.0, "s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "d": 86400.0}
@@ -30,20 +30,7 @@ def parse_duration(text: str) -> float:
 
 
 def _request(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> dict[str, Any]:
-    from edge.keys import SiteKeys
-
-    site = load_site(config)
-    endpoints = list(connect) or list(site.hub.listen)
-    session = open_client(endpoints)
-    try:
-        key = SiteKeys(site.site).hub("alarms")
-        for reply in session.get(key, payload=json.dumps(body).encode(), timeout=10.0):
-            if reply.ok is not None:
-                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-                return out
-    finally:
-        session.close()
-    fail(f"no hub answered at {', '.join(endpoints)} (is it running?)", 2)
+    return hub_request(config, connect, "alarms", body)
 
 
 def _when(ns: int) -> str:

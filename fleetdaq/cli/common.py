@@ -65,3 +65,31 @@ def open_client(endpoints: list[str], timeout_ms: int = 3000) -> Any:
         return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms))
     except zenoh.ZError as err:
         fail(f"cannot reach the hub at {', '.join(endpoints)}: {err}", 2)
+
+
+def hub_request(
+    config: str,
+    connect: tuple[str, ...],
+    what: str,
+    body: dict[str, Any] | None,
+    timeout: float = 10.0,
+) -> dict[str, Any]:
+    """Ask the hub's ``fleetdaq/<site>/hub/<what>`` (a JSON request, a JSON reply); one line and
+    exit 2 when no hub answers."""
+    import json
+
+    from edge.keys import SiteKeys
+
+    site = load_site(config)
+    endpoints = list(connect) or list(site.hub.listen)
+    session = open_client(endpoints)
+    payload = json.dumps(body).encode() if body is not None else None
+    try:
+        key = SiteKeys(site.site).hub(what)
+        for reply in session.get(key, payload=payload, timeout=timeout):
+            if reply.ok is not None:
+                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                return out
+    finally:
+        session.close()
+    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s (is it running?)", 2)

@@ -12,26 +12,13 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, open_client
+from fleetdaq.cli.common import fail, hub_request
 
 
 def _request(
     config: str, connect: tuple[str, ...], body: dict[str, Any], timeout: float
 ) -> dict[str, Any]:
-    from edge.keys import SiteKeys
-
-    site = load_site(config)
-    endpoints = list(connect) or list(site.hub.listen)
-    session = open_client(endpoints)
-    try:
-        key = SiteKeys(site.site).hub("out")
-        for reply in session.get(key, payload=json.dumps(body).encode(), timeout=timeout):
-            if reply.ok is not None:
-                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-                return out
-    finally:
-        session.close()
-    fail(f"no hub answered at {', '.join(endpoints)} (is it running?)", 2)
+    return hub_request(config, connect, "out", body, timeout)
 
 
 def _fmt(x: Any) -> str:

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, open_client
+from fleetdaq.cli.common import hub_request
 
 
 def _when(ns: int) -> str:
@@ -24,21 +23,7 @@ def _when(ns: int) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
 def rules(config: str, connect: tuple[str, ...], as_json: bool) -> None:
     """The hub's rules and interlocks, as they stand."""
-    from edge.keys import SiteKeys
-
-    site = load_site(config)
-    endpoints = list(connect) or list(site.hub.listen)
-    session = open_client(endpoints)
-    states: dict[str, Any] | None = None
-    try:
-        for reply in session.get(SiteKeys(site.site).hub("rules"), timeout=10.0):
-            if reply.ok is not None:
-                states = json.loads(reply.ok.payload.to_bytes())
-                break
-    finally:
-        session.close()
-    if states is None:
-        fail(f"no hub answered at {', '.join(endpoints)} (is it running?)", 2)
+    states = hub_request(config, connect, "rules", None)
     if as_json:
         click.echo(json.dumps(states, indent=2))
         return

@@ -118,13 +118,17 @@ def servo_refused(log: str) -> bool | None:
     """Whether the kernel refused this ptp4l's clock corrections once it was locked.
 
     None when it never locked (a grandmaster, or a slave that heard no master): its servo never
-    ran. Otherwise True only if ptp4l logged a refused adjustment after its first transition to
-    SLAVE: a ptp4l allowed to adjust the clock logs nothing there.
+    ran. Otherwise True only if ptp4l logged a refused adjustment once its servo ran: from the
+    UNCALIBRATED state that led to its first SLAVE (the servo's first corrections, which it
+    needs to lock at all) onwards. A ptp4l allowed to adjust the clock logs nothing there.
+    (Not from SLAVE on only: a grandmaster that is SLAVE to a better one for a moment before it
+    goes away may never make another correction after locking.)
     """
     locked = re.search(r"^.*\bto SLAVE\b.*$", log, re.M)
     if locked is None:
         return None
-    return REFUSED in log[locked.end() :]
+    servo = log.rfind("to UNCALIBRATED", 0, locked.start())
+    return REFUSED in log[servo if servo >= 0 else locked.end() :]
 
 
 class Ptp4l:

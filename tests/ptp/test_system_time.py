@@ -19,7 +19,7 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader
 
 from ptp.reader import Ptp4lReader
-from tests.procs import Proc, free_port, wait_for_port
+from tests.procs import Proc, free_port, sessions, wait_for_port
 from tests.ptp.conftest import PtpLab
 from tests.ptp.lab import REPO, wait_for
 
@@ -156,7 +156,7 @@ def test_edges_stamp_ptp_quality_and_the_hub_raises_grandmaster_events(
             p.kill()
     assert set(codes.values()) == {0}, {p.log_path.stem: p.output()[-2000:] for p in procs}
 
-    (session,) = [p for p in data.iterdir() if p.is_dir()]
+    (session,) = sessions(data)
     clocks: list[tuple[int, str]] = []
     events: list[tuple[str, str, str]] = []
     with AnyReader(sorted(session.glob("*.mcap"))) as reader:

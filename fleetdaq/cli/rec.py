@@ -1,0 +1,101 @@
+"""``fleetdaq rec``: the hub's recorder — status, start, stop, split, and snapshot (the last
+minute, written now even when nothing is being recorded). A request with a reply; each action
+is an event naming who asked."""
+
+from __future__ import annotations
+
+import getpass
+import json
+import socket
+import sys
+from typing import Any
+
+import click
+
+from fleetdaq.cli.common import fail, hub_request
+
+
+def _size(n: int) -> str:
+    x = float(n)
+    for unit in ("B", "kB", "MB", "GB"):
+        if x < 1000:
+            return f"{x:.0f} {unit}" if unit == "B" else f"{x:.1f} {unit}"
+        x /= 1000
+    return f"{x:.1f} TB"
+
+
+def _show(reply: dict[str, Any]) -> None:
+    r, s = reply["recorder"], reply.get("snapshots") or {}
+    click.echo(f"recorder     {r['state']}")
+    click.echo(f"session      {r['session'] or '-'}  ({r['session_dir'] or '-'})")
+    current = r["current_file"] or "-"
+    click.echo(f"current file {current}  {_size(r['current_file_bytes'])}")
+    click.echo(f"files        {len(r['files'])} finished in this session")
+    click.echo(f"written      {_size(r['bytes_written'])} since the hub started")
+    if r["write_errors"] or r["abandoned_files"]:
+        click.echo(
+            f"write errors {r['write_errors']}; abandoned files: "
+            + (", ".join(r["abandoned_files"]) or "none")
+        )
+    if s:
+        click.echo(
+            f"snapshot     holds {s['covers_s']:.0f} s of {s['seconds']:g} s "
+            f"({_size(s['held_bytes'])} of {_size(s['max_bytes'])}); "
+            f"{s['written']} written" + (f", last {s['last']}" if s["last"] else "")
+        )
+    else:
+        click.echo("snapshot     switched off (hub.snapshot.enabled)")
+
+
+def _common(f: Any) -> Any:
+    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
+        f
+    )
+    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
+    return f
+
+
+def _act(config: str, connect: tuple[str, ...], action: str, note: str, as_json: bool) -> None:
+    body = {"action": action, "note": note, "user": getpass.getuser(), "host": socket.gethostname()}
+    reply = hub_request(config, connect, "recorder", body, timeout=150.0)
+    if as_json:
+        click.echo(json.dumps(reply, indent=2))
+        sys.exit(0 if reply.get("ok") else 1)
+    if reply.get("error"):
+        fail(f"rec {action}: {reply['error']}", 2)
+    if action != "status":
+        click.echo(f"{action}: {reply['result']}", err=not reply["ok"])
+    if action in ("status", "start", "stop"):
+        _show(reply)
+    sys.exit(0 if reply["ok"] else 1)
+
+
+@click.group()
+def rec() -> None:
+    """The hub's recorder: status, start, stop, split, snapshot (exit 1 when refused)."""
+
+
+def _action(name: str, doc: str) -> None:
+    @rec.command(name, help=doc)
+    @_common
+    @click.option("--note", default="", help="Why (in the event and the snapshot's metadata).")
+    @click.option("--json", "as_json", is_flag=True, help="The hub's whole answer as JSON.")
+    def command(config: str, connect: tuple[str, ...], note: str, as_json: bool) -> None:
+        _act(config, connect, name, note, as_json)
+
+
+_action("status", "State, session, current file and size, files, the snapshot buffer.")
+_action(
+    "start",
+    "Start recording into a new session folder.",
+)
+_action(
+    "stop",
+    "Stop recording (files closed). Edges are still acked: nothing is owed while stopped.",
+)
+_action("split", "Close the current file now; the next message opens the next one.")
+_action(
+    "snapshot",
+    "Write what the snapshot buffer holds (the last hub.snapshot.seconds) to "
+    "<data>/snapshots/ — recording or not.",
+)

@@ -1,0 +1,318 @@
+"""Prometheus ``/metrics`` (served by the dashboard's web service), written by prometheus-client
+from one read-model snapshot per scrape: nothing is counted twice and no service is touched.
+
+Names follow Prometheus' conventions: ``fleetdaq_`` prefix, base units (seconds, bytes,
+ratios 0..1), ``_total`` on counters, ``node`` / ``stream`` / ``severity`` labels. A counter of
+a stream or the recorder starts again from 0 when the hub restarts (Prometheus' ``rate()``
+handles that).
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    InfoMetricFamily,
+    Metric,
+)
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+from edge import __version__
+from edge.messages import NodeHealth
+from hub.read_model import HubView
+
+SEVERITIES = ("critical", "major", "minor", "info")
+RECORDER_STATES = ("recording", "stopped", "disk_error", "failed", "starting")
+
+
+def render_metrics(view: HubView) -> tuple[bytes, str]:
+    """The exposition text of `view`, and its content type."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(_ViewCollector(view))
+    return generate_latest(registry), CONTENT_TYPE_LATEST
+
+
+class _ViewCollector:
+    def __init__(self, view: HubView) -> None:
+        self.view = view
+
+    def collect(self) -> Iterator[Metric]:
+        yield from _build(self.view)
+        yield from _streams(self.view)
+        yield from _nodes(self.view)
+        yield from _alarms(self.view)
+        yield from _recorder(self.view)
+        yield from _hub(self.view)
+
+
+def _build(view: HubView) -> Iterator[Metric]:
+    info = InfoMetricFamily("fleetdaq_build", "The hub's software.")
+    info.add_metric([], {"version": __version__, "python": platform.python_version()})
+    yield info
+    site = InfoMetricFamily("fleetdaq_site", "The site this hub serves.")
+    site.add_metric([], {"site": view.site})
+    yield site
+
+
+def _streams(view: HubView) -> Iterator[Metric]:
+    labels = ["node", "stream"]
+    counters = {
+        "samples": ("fleetdaq_stream_samples", "Samples received and accepted."),
+        "scans": ("fleetdaq_stream_scans", "Scans (one sample of every channel) accepted."),
+        "batches": ("fleetdaq_stream_batches", "Batches accepted."),
+        "gaps": ("fleetdaq_stream_gaps", "Gaps in a stream's sequence seen (may still fill)."),
+        "lost": ("fleetdaq_stream_lost_batches", "Batches the edge no longer holds: lost."),
+        "duplicates": ("fleetdaq_stream_duplicate_batches", "Batches received again (replays)."),
+        "malformed": ("fleetdaq_stream_malformed_batches", "Payloads refused as malformed."),
+        "acquisition_gaps": (
+            "fleetdaq_stream_acquisition_gaps",
+            "Breaks in the acquisition time between consecutive batches.",
+        ),
+    }
+    families = {k: CounterMetricFamily(n, h, labels=labels) for k, (n, h) in counters.items()}
+    rate = GaugeMetricFamily("fleetdaq_stream_rate_hertz", "Configured scans/s.", labels=labels)
+    measured = GaugeMetricFamily(
+        "fleetdaq_stream_measured_rate_hertz", "Scans/s over the last batches.", labels=labels
+    )
+    age = GaugeMetricFamily(
+        "fleetdaq_stream_data_age_seconds", "Since the newest batch arrived.", labels=labels
+    )
+    recorded = GaugeMetricFamily(
+        "fleetdaq_stream_recorded", "1 when the recorder writes this stream.", labels=labels
+    )
+    for s in view.streams:
+        key = [s.node, s.stream]
+        for k, fam in families.items():
+            fam.add_metric(key, float(getattr(s, k)))
+        rate.add_metric(key, s.rate_hz)
+        measured.add_metric(key, _finite(s.scan_rate))
+        if s.last_receive_ns:
+            age.add_metric(key, max(0.0, (view.time_ns - s.last_receive_ns) / 1e9))
+        recorded.add_metric(key, float(s.recorded))
+    yield from families.values()
+    yield from (rate, measured, age, recorded)
+
+
+def _nodes(view: HubView) -> Iterator[Metric]:
+    up = GaugeMetricFamily("fleetdaq_node_up", "1 while the node is alive.", labels=["node"])
+    g: dict[str, GaugeMetricFamily] = {}
+
+    def gauge(name: str, doc: str, node: str, value: float, **extra: str) -> None:
+        fam = g.get(name)
+        if fam is None:
+            fam = g[name] = GaugeMetricFamily(name, doc, labels=["node", *extra])
+        if math.isfinite(value):
+            fam.add_metric([node, *extra.values()], value)
+
+    clock = GaugeMetricFamily(
+        "fleetdaq_node_clock_state",
+        "1 for the node's clock state (ptp state names: locked, ...).",
+        labels=["node", "state"],
+    )
+    for n in view.nodes:
+        up.add_metric([n.node], float(n.alive))
+        if n.health is not None:
+            _health(gauge, n.node, n.health)
+            c = n.health.clock
+            if c.known:
+                clock.add_metric([n.node, c.state or "unknown"], 1.0)
+                if c.has_offset:
+                    gauge(
+                        "fleetdaq_node_clock_offset_seconds",
+                        "The node clock's offset from its time source (ptp4l's master offset).",
+                        n.node,
+                        c.offset_ns / 1e9,
+                    )
+            else:
+                clock.add_metric([n.node, "unknown"], 1.0)
+    if view.hub_health is not None:
+        up.add_metric(["hub"], 1.0)
+        _health(gauge, "hub", view.hub_health)
+    yield up
+    yield clock
+    yield from g.values()
+    f = view.fleet
+    if f:
+        yield GaugeMetricFamily(
+            "fleetdaq_fleet_grandmasters",
+            "Grandmasters the locked nodes follow (1: one time base for the whole fleet).",
+            len(f.get("grandmasters", ())),
+        )
+        offset = f.get("max_abs_offset_ns")
+        if offset is not None:
+            yield GaugeMetricFamily(
+                "fleetdaq_fleet_max_abs_clock_offset_seconds",
+                "The largest clock offset among the nodes.",
+                offset / 1e9,
+            )
+
+
+def _health(gauge: Any, node: str, h: NodeHealth) -> None:
+    host = h.host
+    gauge("fleetdaq_node_uptime_seconds", "Since the agent started.", node, h.uptime_s)
+    gauge("fleetdaq_node_cpu_usage_ratio", "CPU in use, 0..1.", node, host.cpu_percent / 100)
+    gauge("fleetdaq_node_load1", "1-minute load average.", node, host.load_1m)
+    gauge("fleetdaq_node_memory_total_bytes", "Memory.", node, float(host.memory_total_bytes))
+    gauge(
+        "fleetdaq_node_memory_available_bytes",
+        "Memory available.",
+        node,
+        float(host.memory_available_bytes),
+    )
+    gauge("fleetdaq_node_cpu_temperature_celsius", "CPU temperature.", node, host.cpu_temperature_c)
+    for d in host.disks:
+        gauge(
+            "fleetdaq_node_disk_free_bytes",
+            "Free space of the disk holding a role's files.",
+            node,
+            float(d.free_bytes),
+            role=d.role,
+        )
+        gauge(
+            "fleetdaq_node_disk_total_bytes",
+            "Size of that disk.",
+            node,
+            float(d.total_bytes),
+            role=d.role,
+        )
+    if h.streams:
+        gauge(
+            "fleetdaq_node_spool_bytes",
+            "Batches held on the edge's disk until the hub acks them.",
+            node,
+            float(sum(s.spool_bytes for s in h.streams)),
+        )
+        gauge(
+            "fleetdaq_node_oldest_unacked_seconds",
+            "Age of the oldest batch not yet acked by the hub.",
+            node,
+            max((s.oldest_unacked_age_s for s in h.streams), default=0.0),
+        )
+
+
+def _alarms(view: HubView) -> Iterator[Metric]:
+    active = GaugeMetricFamily(
+        "fleetdaq_alarms_active", "Alarms whose condition holds now.", labels=["severity"]
+    )
+    unacked = GaugeMetricFamily(
+        "fleetdaq_alarms_unacked", "Alarms waiting for an operator's ack.", labels=["severity"]
+    )
+    shelved = GaugeMetricFamily("fleetdaq_alarms_shelved", "Shelved alarms.", labels=["severity"])
+    counts = {s: [0, 0, 0] for s in SEVERITIES}
+    for a in view.alarms:
+        c = counts.setdefault(a.severity, [0, 0, 0])
+        c[0] += a.active
+        c[1] += "unack" in a.state
+        c[2] += a.state == "shelved"
+    for sev, (n_active, n_unacked, n_shelved) in counts.items():
+        active.add_metric([sev], n_active)
+        unacked.add_metric([sev], n_unacked)
+        shelved.add_metric([sev], n_shelved)
+    yield from (active, unacked, shelved)
+    transitions = CounterMetricFamily(
+        "fleetdaq_alarm_transitions", "Alarm transitions since the hub started.", labels=["kind"]
+    )
+    for kind, n in sorted(view.alarm_totals.items()):
+        transitions.add_metric([kind], n)
+    yield transitions
+
+
+def _recorder(view: HubView) -> Iterator[Metric]:
+    r = view.recorder
+    state = GaugeMetricFamily("fleetdaq_recorder_state", "1 for the state.", labels=["state"])
+    for s in RECORDER_STATES:
+        state.add_metric([s], float(r.state == s))
+    yield state
+    yield CounterMetricFamily(
+        "fleetdaq_recorder_written_bytes", "Bytes of MCAP written.", value=r.bytes_written
+    )
+    yield GaugeMetricFamily(
+        "fleetdaq_recorder_file_bytes", "Size of the file being written.", r.current_file_bytes
+    )
+    yield GaugeMetricFamily(
+        "fleetdaq_recorder_session_files", "Files finished in this session.", len(r.files)
+    )
+    yield CounterMetricFamily(
+        "fleetdaq_recorder_write_errors", "Writes the disk refused.", value=r.write_errors
+    )
+    yield CounterMetricFamily(
+        "fleetdaq_recorder_abandoned_files", "Files given up after a write error.",
+        value=len(r.abandoned_files),
+    )  # fmt: skip
+    yield GaugeMetricFamily(
+        "fleetdaq_recorder_queued_bytes", "Bytes waiting for the writer.", r.queued_bytes
+    )
+    snap = view.snapshots
+    if snap:
+        yield GaugeMetricFamily(
+            "fleetdaq_snapshot_buffer_bytes", "Held by the snapshot buffer.", snap["held_bytes"]
+        )
+        yield GaugeMetricFamily(
+            "fleetdaq_snapshot_buffer_covers_seconds",
+            "Span the snapshot buffer holds.",
+            snap["covers_s"],
+        )
+        yield CounterMetricFamily(
+            "fleetdaq_snapshots_written", "Snapshots written.", value=snap["written"]
+        )
+
+
+def _hub(view: HubView) -> Iterator[Metric]:
+    n = view.notifier
+    if n:
+        yield GaugeMetricFamily(
+            "fleetdaq_notifications_queued", "Mails waiting to be sent.", n.get("queued", 0)
+        )
+        yield GaugeMetricFamily(
+            "fleetdaq_notifications_oldest_queued_seconds",
+            "Age of the oldest mail waiting.",
+            n.get("oldest_queued_age_s", 0.0),
+        )
+        for key, doc in (
+            ("sent", "Mails the server accepted."),
+            ("failed_attempts", "Delivery attempts that failed."),
+            ("rejected", "Mails the server refused for good."),
+            ("suppressed", "Notifications not mailed by the policy."),
+        ):
+            yield CounterMetricFamily(f"fleetdaq_notifications_{key}", doc, value=n.get(key, 0))
+    events = CounterMetricFamily("fleetdaq_events", "Events logged, by level.", labels=["level"])
+    for level, count in sorted(view.event_counts.items()):
+        events.add_metric([level.lower()], count)
+    yield events
+    cmds = CounterMetricFamily(
+        "fleetdaq_commands", "Output commands, by result.", labels=["result"]
+    )
+    for result, count in sorted(view.commands.items()):
+        cmds.add_metric([result], count)
+    yield cmds
+    yield CounterMetricFamily(
+        "fleetdaq_refused_messages",
+        "Messages on keys the site file does not define.",
+        value=view.refused_total,
+    )
+    dropped = CounterMetricFamily(
+        "fleetdaq_bus_dropped_events", "Events a slow subscriber missed.", labels=["subscriber"]
+    )
+    for b in view.bus:
+        dropped.add_metric([b["name"]], b["dropped"])
+    yield dropped
+    failed = GaugeMetricFamily(
+        "fleetdaq_hub_service_failed", "1 for a hub service whose worker died.", labels=["service"]
+    )
+    for name, _why in view.failures:
+        failed.add_metric([name], 1.0)
+    yield failed
+    yield GaugeMetricFamily(
+        "fleetdaq_hub_scrape_time_seconds", "When this was taken (Unix time).", time.time()
+    )
+
+
+def _finite(x: float) -> float:
+    return x if math.isfinite(x) else 0.0

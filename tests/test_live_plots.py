@@ -1,0 +1,104 @@
+"""Live plots decimated on the hub: per pixel column, the min and max of the samples that fall in
+it — checked against numpy over the same samples, computed independently here."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from edge.config.load import parse_config
+from edge.wire import BatchEncoder, read_header
+from hub.batch_feed import BatchFeed, FedBatch
+from hub.live_plots import LivePlots
+from ptp.quality import UNSYNCED
+
+SITE = """\
+site: plots
+nodes:
+  wec:
+    streams:
+      t8:
+        driver: wave_sim
+        rate_hz: 40000
+        channels: [{name: heave, unit: m}, {name: force, unit: kN}]
+"""
+RATE = 40_000
+PERIOD = 1e9 / RATE
+
+
+def fed(enc: BatchEncoder, seq: int, t0: int, data: np.ndarray, late: bool = False) -> FedBatch:
+    payload = bytes(enc.encode(seq, t0, PERIOD, data, UNSYNCED))
+    return FedBatch("wec", "t8", read_header(payload), payload, time.time_ns(), late)
+
+
+@pytest.fixture
+def plots() -> LivePlots:
+    site = parse_config(SITE, "<test>")
+    return LivePlots(site, BatchFeed(), window_s=10.0)
+
+
+def test_frames_are_min_and_max_per_pixel_column(plots: LivePlots):
+    rng = np.random.default_rng(7)
+    enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
+    t0 = 1_800_000_000_000_000_000  # on a 2 ms bucket boundary
+    n_batches, per = 50, 400  # 0.5 s at 40 kS/s
+    all_data = rng.normal(size=(n_batches * per, 2))
+    all_data[12345, 1] = 99.0  # one spike must survive decimation
+    for i in range(n_batches):
+        plots._on_batch(
+            fed(enc, i, t0 + round(i * per * PERIOD), all_data[i * per : (i + 1) * per])
+        )
+
+    end = t0 + round(n_batches * per * PERIOD) - 1
+    width = 50
+    frame = plots.frame("wec/t8", ["force"], width, 0.5, end_ns=end)
+    got_min = np.array(frame["channels"]["force"]["min"], dtype=float)
+    got_max = np.array(frame["channels"]["force"]["max"], dtype=float)
+    assert frame["channels"]["force"]["unit"] == "kN"
+    assert np.nanmax(got_max) == 99.0, "a one-sample spike shows"
+
+    # Independently: the samples whose 2 ms bucket falls in each column.
+    t = t0 + np.arange(n_batches * per) * PERIOD
+    first = (end - 500_000_000) // 2_000_000
+    buckets = (t // 2_000_000).astype(np.int64) - first
+    count = end // 2_000_000 - first + 1
+    column = buckets * width // count
+    for c in range(width):
+        sel = all_data[column == c, 1]
+        if sel.size:
+            assert got_min[c] == pytest.approx(sel.min(), abs=1e-6)
+            assert got_max[c] == pytest.approx(sel.max(), abs=1e-6)
+        else:
+            assert np.isnan(got_min[c])
+            assert np.isnan(got_max[c])
+
+    latest = plots.streams()["wec/t8"]
+    assert latest["channels"] == ["heave", "force"]
+    assert latest["latest"] == pytest.approx(list(all_data[-1]))
+
+
+def test_a_late_batch_fills_its_columns_without_moving_the_latest(plots: LivePlots):
+    enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
+    t0 = 1_800_000_000_000_000_000
+    per = 400
+    plots._on_batch(fed(enc, 0, t0, np.full((per, 2), 1.0)))
+    plots._on_batch(fed(enc, 2, t0 + round(2 * per * PERIOD), np.full((per, 2), 3.0)))
+    before = plots.frame("wec/t8", None, 30, 0.03)
+    assert None in before["channels"]["heave"]["max"], "the missing batch is a hole"
+    plots._on_batch(fed(enc, 1, t0 + round(per * PERIOD), np.full((per, 2), -5.0), late=True))
+    after = plots.frame("wec/t8", None, 30, 0.03)
+    assert min(v for v in after["channels"]["heave"]["min"] if v is not None) == -5.0
+    assert plots.streams()["wec/t8"]["latest"] == [3.0, 3.0], "the newest stays the newest"
+
+
+def test_bad_requests_raise_clear_errors(plots: LivePlots):
+    with pytest.raises(KeyError):
+        plots.frame("wec/nope", None, 100, 1.0)
+    with pytest.raises(ValueError, match="width"):
+        plots.frame("wec/t8", None, 0, 1.0)
+    with pytest.raises(ValueError, match="span"):
+        plots.frame("wec/t8", None, 100, 3600.0)
+    with pytest.raises(KeyError, match="no-such-channel"):
+        plots.frame("wec/t8", ["no-such-channel"], 100, 1.0)

@@ -1,0 +1,104 @@
+"""Prometheus metrics from the hub's read model, parsed back with prometheus-client's own parser:
+the names and labels a scraper sees and their values, against the view they came from."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from prometheus_client.parser import text_string_to_metric_families
+
+from edge import __version__
+from edge.config.load import parse_config
+from edge.keys import SiteKeys
+from edge.wire import BatchEncoder, encode_u64
+from edge.zenoh_session import client_config
+from hub.metrics import render_metrics
+from hub.runtime import HubRuntime
+from ptp.quality import UNSYNCED
+from tests.procs import free_port, wait_until
+
+SITE = """\
+site: prom
+hub:
+  listen: [tcp/127.0.0.1:{port}]
+  recorder: {{flush_interval_s: 0.2}}
+  dashboard: {{enabled: false}}
+nodes:
+  wec:
+    streams:
+      t8: {{driver: wave_sim, rate_hz: 1000, channels: [{{name: heave, unit: m}}]}}
+alarms:
+  heave_high: {{channel: wec/t8/heave, above: 5, severity: critical}}
+"""
+
+
+@pytest.fixture
+def hub(tmp_path: Path) -> Iterator[tuple[HubRuntime, int]]:
+    port = free_port()
+    runtime = HubRuntime(parse_config(SITE.format(port=port), "<test>"), tmp_path / "data")
+    yield runtime, port
+    runtime.close()
+
+
+def samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return out
+
+
+def test_metrics_say_what_the_view_says(hub: tuple[HubRuntime, int]):
+    runtime, port = hub
+    runtime.start()
+    session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
+    pub = session.declare_publisher(SiteKeys("prom").data("wec", "t8"))
+    enc = BatchEncoder("wec", "t8", ("heave",), ("m",))
+    try:
+        wait_until(lambda: pub.matching_status.matching, 10, "the hub's subscription")
+        t0 = time.time_ns()
+        for seq in (0, 1, 2, 5):  # 3 and 4 never come: a gap
+            data = np.full((100, 1), 9.0 if seq == 5 else 1.0)
+            pub.put(bytes(enc.encode(seq, t0 + seq * 100_000_000, 1e6, data, UNSYNCED)),
+                    attachment=encode_u64(0))  # fmt: skip
+        wait_until(
+            lambda: any(a.active for a in runtime.snapshot().alarms), 20, "the alarm to raise"
+        )
+        wait_until(
+            lambda: (s := runtime.snapshot().stream("wec", "t8")) is not None and s.batches == 4,
+            20,
+            "4 batches",
+        )
+        view = runtime.snapshot()
+        body, content_type = render_metrics(view)
+    finally:
+        pub.undeclare()
+        session.close()
+    assert content_type.startswith("text/plain; version=")
+    m = samples(body.decode())
+    stream = (("node", "wec"), ("stream", "t8"))
+    assert m[("fleetdaq_stream_batches_total", stream)] == 4
+    assert m[("fleetdaq_stream_samples_total", stream)] == 400
+    assert m[("fleetdaq_stream_gaps_total", stream)] == view.stream("wec", "t8").gaps >= 1  # type: ignore[union-attr]
+    assert m[("fleetdaq_stream_rate_hertz", stream)] == 1000
+    assert m[("fleetdaq_alarms_active", (("severity", "critical"),))] == 1
+    assert m[("fleetdaq_alarms_unacked", (("severity", "critical"),))] == 1
+    assert m[("fleetdaq_alarms_active", (("severity", "major"),))] == 0
+    assert m[("fleetdaq_build_info", (("python", __import__("platform").python_version()),
+                                      ("version", __version__)))] == 1  # fmt: skip
+    assert m[("fleetdaq_node_up", (("node", "wec"),))] == 0, "no health from wec: not alive"
+    assert m[("fleetdaq_node_up", (("node", "hub"),))] == 1
+    assert m[("fleetdaq_node_memory_total_bytes", (("node", "hub"),))] > 0
+    assert 0 <= m[("fleetdaq_node_cpu_usage_ratio", (("node", "hub"),))] <= 1
+    assert m[("fleetdaq_recorder_state", (("state", "recording"),))] == 1
+    assert m[("fleetdaq_recorder_written_bytes_total", ())] == view.recorder.bytes_written
+    assert m[("fleetdaq_recorder_write_errors_total", ())] == 0
+    assert ("fleetdaq_notifications_queued", ()) in m
+    assert m[("fleetdaq_snapshot_buffer_bytes", ())] > 0
+    names = {name for name, _ in m}
+    assert all(n.startswith("fleetdaq_") for n in names)
