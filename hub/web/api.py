@@ -19,7 +19,6 @@ repeated failed logins) and counted; an unexpected error is logged and answered 
 from __future__ import annotations
 
 import asyncio
-import importlib
 import json
 import logging
 import math
@@ -31,6 +30,7 @@ from typing import Any
 from aiohttp import web
 
 from edge.config.dashboard import DashboardConfig
+from hub.metrics import render_metrics
 from hub.read_model import to_jsonable
 from hub.web.auth import COOKIE, CSRF_HEADER, Auth, Session, csrf_ok, origin_problem
 from hub.web.events import LEVELS, EventFilter, EventTail
@@ -296,11 +296,7 @@ class Api:
         )  # fmt: skip
 
     async def metrics(self, request: web.Request) -> web.Response:
-        try:
-            render = importlib.import_module("hub.metrics").render_metrics
-        except (ImportError, AttributeError):
-            raise fail(501, "this hub has no Prometheus metrics yet (hub.metrics)") from None
-        body, content_type = render(self.parts.snapshot())
+        body, content_type = render_metrics(self.parts.snapshot())
         return web.Response(body=body, headers={"Content-Type": content_type})
 
     # --- acting -----------------------------------------------------------------------------------

@@ -69,8 +69,14 @@ def rows(page: Page, table: str) -> list[list[str]]:
     return out
 
 
-def wait_rows(page: Page, table: str, cond: Callable[[list[list[str]]], bool], what: str) -> Any:
-    deadline = time.monotonic() + 40
+def wait_rows(
+    page: Page,
+    table: str,
+    cond: Callable[[list[list[str]]], bool],
+    what: str,
+    timeout: float = 40.0,
+) -> Any:
+    deadline = time.monotonic() + timeout
     while True:
         got = rows(page, table)
         if cond(got):
@@ -97,16 +103,20 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         console: list[str] = []
         page.on("request", lambda r: requests.append(r.url))
         page.on("requestfailed", lambda r: failed.append(f"{r.url}: {r.failure}"))
+        page_errors: list[str] = []
         page.on("console", lambda m: console.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: console.append(f"pageerror: {e}"))
-        result["requests"], result["failed_requests"], result["console_errors"] = (
-            requests, failed, console,
+        page.on("pageerror", lambda e: page_errors.append(str(e)))
+        result["requests"], result["failed_requests"], result["page_errors"] = (
+            requests, failed, page_errors,
         )  # fmt: skip
 
         page.goto(url)
         page.get_by_role("status", name="Connection").filter(has_text="live").wait_for()
         fleet = wait_rows(
-            page, "Fleet", lambda r: {x[0] for x in r} >= set(args["nodes"]) | {"hub"}, "the fleet"
+            page,
+            "Fleet",
+            lambda r: {x[0] for x in r if x[2] != "–"} >= set(args["nodes"]) | {"hub"},
+            "every node and its health",
         )
         result["fleet"] = fleet
         streams = wait_rows(
@@ -142,14 +152,22 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         )
         page.screenshot(path=str(out / "dashboard.png"), full_page=False)
 
-        # An alarm appears (the demo's thermocouple opens 12 s after start).
-        alarms = wait_rows(
-            page, "Alarms", lambda r: any(UNACKED.match(x[1]) for x in r), "an unacked alarm"
+        # An alarm appears: a latched one (it stays unacked until acked, whatever the signal
+        # does meanwhile), the demo's substrate_hot, raised in the first weld layer.
+        name = args["alarm"]
+        wait_rows(
+            page,
+            "Alarms",
+            lambda r: any(x[0] == name and UNACKED.match(x[1]) for x in r),
+            f"{name} raised",
+            timeout=90,
         )
-        name = next(x[0] for x in alarms if UNACKED.match(x[1]))
         result["alarm"] = name
         ack = page.get_by_role("button", name=f"Acknowledge {name}", exact=True)
         result["ack_button_disabled_logged_out"] = ack.is_disabled()
+
+        # What the browser logged before the refusals below (each logs a failed resource).
+        result["console_errors"] = list(console)
 
         # Refused without a login: the page's own fetch, no session.
         result["ack_without_login"] = page_fetch(
@@ -162,6 +180,12 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         result["wrong_password_status"] = resp.value.status
         result["wrong_password_text"] = page.get_by_role("alert").inner_text()
 
+        # The login the demo printed works; then the user the test added while the hub ran.
+        login(page, args["demo_user"], args["demo_password"])
+        page.get_by_text(f"Logged in as {args['demo_user']}").wait_for()
+        result["demo_login"] = True
+        page.get_by_role("button", name="Log out").click()
+        page.get_by_role("button", name="Log in").wait_for()
         login(page, args["user"], args["password"])
         page.get_by_text(f"Logged in as {args['user']}").wait_for()
 
@@ -189,7 +213,9 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         dialog = page.get_by_role("dialog")
         dialog.get_by_label("Note").fill("seen from the dashboard test")
         dialog.get_by_role("button", name="Acknowledge").click()
-        page.get_by_role("status").filter(has_text=f"ack {name}: done").wait_for()
+        toast = page.get_by_role("status").filter(has_text=f"ack {name}:")
+        toast.wait_for()
+        result["ack_toast"] = toast.inner_text()
         acked = wait_rows(
             page,
             "Alarms",
@@ -211,7 +237,9 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         before = facts()
         page.get_by_role("button", name="Split", exact=True).click()
         page.get_by_role("dialog").get_by_role("button", name="Split").click()
-        page.get_by_role("status").filter(has_text="recorder split: done").wait_for()
+        toast = page.get_by_role("status").filter(has_text="recorder split:")
+        toast.wait_for()
+        result["split_toast"] = toast.inner_text()
         page.wait_for_function(
             """(n) => document.getElementById("files-count").textContent !== n""",
             arg=before["Files written"],
@@ -226,6 +254,9 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
             "button", name="Split", exact=True
         ).is_disabled()
         result["stats"] = page.evaluate("() => window.fleetdaq.stats.frames")
+        result["console_errors_after"] = [
+            m for m in console if not m.startswith("Failed to load resource: the server")
+        ]
         browser.close()
 
 

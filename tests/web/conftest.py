@@ -39,6 +39,7 @@ hub:
     listen: 127.0.0.1:0
     users_file: {users}
     open_view: {open_view}
+    metrics: {metrics}
 nodes:
   wec:
     streams:
@@ -173,10 +174,13 @@ def write_cheap_users(path: Path, passwords: dict[str, str]) -> None:
 def make_web(tmp_path: Path) -> Iterator[Callable[..., Web]]:
     started: list[tuple[WebService, EventBus, LivePlots]] = []
 
-    def make(open_view: bool = True) -> Web:
+    def make(open_view: bool = True, metrics: bool = True) -> Web:
         users = tmp_path / "users"
         write_cheap_users(users, PASSWORDS)
-        site = parse_config(SITE.format(users=users, open_view=str(open_view).lower()), "<t>")
+        text = SITE.format(
+            users=users, open_view=str(open_view).lower(), metrics=str(metrics).lower()
+        )
+        site = parse_config(text, "<t>")
         bus = EventBus()
         feed = BatchFeed()
         plots = LivePlots(site, feed)

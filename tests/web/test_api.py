@@ -4,7 +4,6 @@ with plain HTTP and aiohttp's WebSocket client."""
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import json
 import logging
 import socket
@@ -27,7 +26,8 @@ def test_viewing_is_open_but_acting_needs_a_login(make_web: MakeWeb):
     web = make_web()
     http = web.client()
     status, view = http.get("/api/view")
-    assert status == 200 and view["site"] == "webtest"
+    assert status == 200
+    assert view["site"] == "webtest"
     status, answer = http.post("/api/alarms", {"action": "ack", "names": ["x"]})
     assert (status, answer["error"]) == (401, "log in first: actions need a login")
     assert web.alarms.requests == []
@@ -39,7 +39,9 @@ def test_with_open_view_off_even_looking_needs_a_login(make_web: MakeWeb):
     assert http.get("/api/view")[0] == 401
     assert http.get("/api/events")[0] == 401
     status, session = http.get("/api/session")
-    assert status == 200 and session["open_view"] is False and session["user"] is None
+    assert status == 200
+    assert session["open_view"] is False
+    assert session["user"] is None
     assert http.get("/")[0] == 200, "the page itself loads, to show the login"
     http.login("alice")
     assert http.get("/api/view")[0] == 200
@@ -78,14 +80,16 @@ def test_an_action_without_the_sessions_csrf_token_or_from_another_origin_is_ref
     token = http.csrf
     http.csrf = ""
     status, answer = http.post("/api/recorder", {"action": "split"})
-    assert status == 403 and "X-CSRF-Token" in answer["error"]
+    assert status == 403
+    assert "X-CSRF-Token" in answer["error"]
     http.csrf = "x" * len(token)
     assert http.post("/api/recorder", {"action": "split"})[0] == 403
     http.csrf = token
     status, answer = http.post(
         "/api/recorder", {"action": "split"}, headers={"Origin": "http://evil.example"}
     )
-    assert status == 403 and "evil.example" in answer["error"]
+    assert status == 403
+    assert "evil.example" in answer["error"]
     other = web.client(origin="")  # neither Origin nor Referer
     other.cookie, other.csrf = http.cookie, http.csrf
     assert other.post("/api/recorder", {"action": "split"})[0] == 403
@@ -98,17 +102,21 @@ def test_an_action_without_the_sessions_csrf_token_or_from_another_origin_is_ref
 def test_a_login_from_another_origin_is_refused(make_web: MakeWeb):
     web = make_web()
     http = web.client(origin="http://evil.example")
-    status, answer = http.login("alice")
-    assert status == 403 and http.cookie == ""
+    status, _answer = http.login("alice")
+    assert status == 403
+    assert http.cookie == ""
 
 
 def test_a_login_gives_an_httponly_samesite_strict_cookie_and_logout_ends_it(make_web: MakeWeb):
     web = make_web()
     http = web.client()
     status, answer = http.login("bob")
-    assert status == 200 and answer["user"] == "bob"
+    assert status == 200
+    assert answer["user"] == "bob"
     cookie = http.last_headers["set-cookie"]
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie
+    assert "HttpOnly" in cookie
+    assert "SameSite=Strict" in cookie
+    assert "Path=/" in cookie
     assert http.get("/api/session")[1]["user"] == "bob"
     cookie_value = http.cookie
     assert http.post("/api/logout")[0] == 200
@@ -123,7 +131,8 @@ def test_wrong_passwords_are_refused_then_rate_limited(make_web: MakeWeb):
     statuses = [http.login("alice", "wrong password")[0] for _ in range(5)]
     assert statuses == [401] * 5
     status, answer = http.login("alice")
-    assert status == 429 and "too many failed logins" in answer["error"]
+    assert status == 429
+    assert "too many failed logins" in answer["error"]
     assert int(http.last_headers["retry-after"]) > 0
     assert web.service.auth.failures == 5
 
@@ -156,7 +165,8 @@ def test_bad_input_is_refused_with_one_clear_line_and_counted(
     http.login("alice")
     before = web.service.stats.bad_requests
     got, answer = http.request("POST", path, body, headers=headers, raw=raw)
-    assert got == status and says in answer["error"], answer
+    assert got == status, answer
+    assert says in answer["error"]
     assert web.service.stats.bad_requests == before + 1
     assert web.alarms.requests == web.recorder.requests == web.commands.requests == []
     assert web.service.failure() is None
@@ -186,14 +196,16 @@ def test_a_refusal_by_the_hub_is_passed_on_as_400_with_its_reason(make_web: Make
 def test_bad_plot_requests_are_refused(make_web: MakeWeb, query: str, status: int, says: str):
     web = make_web()
     got, answer = web.client().get(f"/api/plot?{query}")
-    assert got == status and says in answer["error"]
+    assert got == status
+    assert says in answer["error"]
 
 
 def test_a_plot_is_min_and_max_per_pixel_column_of_what_arrived(make_web: MakeWeb):
     web = make_web()
     web.feed_batches(3)
     status, frame = web.client().get("/api/plot?stream=wec/t8&channels=heave&width=3&span_s=0.3")
-    assert status == 200 and frame["width"] == 3
+    assert status == 200
+    assert frame["width"] == 3
     heave = frame["channels"]["heave"]
     assert heave["unit"] == "m"
     assert max(v for v in heave["max"] if v is not None) == 299.0
@@ -219,14 +231,17 @@ def test_the_event_tail_filters_by_level_node_source_and_text(make_web: MakeWeb)
     assert http.get("/api/events?limit=0")[0] == 400
 
 
-def test_metrics_need_no_login(make_web: MakeWeb):
+def test_metrics_need_no_login_even_when_viewing_does(make_web: MakeWeb):
     web = make_web(open_view=False)
-    status, body = web.client().get("/metrics")
-    if importlib.util.find_spec("hub.metrics") is None:
-        # Until hub/metrics.py lands the route says so instead of failing obscurely.
-        assert status == 501 and "no Prometheus metrics yet" in body["error"]
-    else:
-        assert status == 200 and isinstance(body, bytes) and body
+    http = web.client()
+    status, body = http.get("/metrics")
+    assert status == 200
+    assert b'fleetdaq_site_info{site="webtest"} 1.0' in body
+    assert http.last_headers["content-type"].startswith("text/plain; version=")
+
+
+def test_metrics_switched_off_are_not_served(make_web: MakeWeb):
+    assert make_web(metrics=False).client().get("/metrics")[0] == 404
 
 
 def test_a_taken_port_fails_the_start_with_one_line(make_web: MakeWeb):
@@ -237,7 +252,8 @@ def test_a_taken_port_fails_the_start_with_one_line(make_web: MakeWeb):
     with pytest.raises(DashboardError) as err:
         second.start()
     assert str(err.value).startswith(f"dashboard: cannot listen on 127.0.0.1:{taken}: ")
-    assert "in use" in str(err.value) and "\n" not in str(err.value)
+    assert "in use" in str(err.value)
+    assert "\n" not in str(err.value)
     second.stop()  # idempotent after a failed start
     assert web.client().get("/api/session")[0] == 200, "the first one is untouched"
 
@@ -246,7 +262,7 @@ def _site_with(web: Web, cfg: Any) -> Any:
     from edge.config.load import parse_config
     from tests.web.conftest import SITE
 
-    site = parse_config(SITE.format(users=web.users_file, open_view="true"), "<t>")
+    site = parse_config(SITE.format(users=web.users_file, open_view="true", metrics="true"), "<t>")
     return site.model_copy(update={"hub": site.hub.model_copy(update={"dashboard": cfg})})
 
 
@@ -303,7 +319,8 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
     got = asyncio.run(run())
     assert got["state"]["view"]["site"] == "webtest"
     assert got["state"]["streams"]["wec/t8"]["channels"] == ["heave", "surge"]
-    assert got["frame"]["id"] == "a" and list(got["frame"]["channels"]) == ["surge"]
+    assert got["frame"]["id"] == "a"
+    assert list(got["frame"]["channels"]) == ["surge"]
     assert got["again"]["latest_ns"] > got["frame"]["latest_ns"]
     assert got["errors"][0]["error"] == "not JSON"
     assert "no stream 'x'" in got["errors"][1]["error"]
@@ -355,7 +372,8 @@ def test_a_slow_client_gets_the_newest_state_and_frames_and_the_rest_is_counted_
         client.offer_frame("p1", f"frame {i}")
     client.offer_events([{"seq": i} for i in range(2000)])
     pending = client.take()
-    assert pending[0] == "state 999" and pending[-1] == "frame 999"
+    assert pending[0] == "state 999"
+    assert pending[-1] == "frame 999"
     assert len(pending) == 3, "one state, one events message, one frame per plot"
     assert len(json.loads(pending[1])["events"]) == 500
     assert stats.ws_dropped == 999 + 999 + 1500

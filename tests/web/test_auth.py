@@ -42,16 +42,19 @@ def auth(tmp_path: Path, clock: Clock) -> Auth:
 
 def test_the_right_password_opens_a_session_and_a_wrong_one_does_not(auth: Auth):
     ok = auth.login("alice", "correct horse", "10.0.0.5")
-    assert ok.session is not None and ok.session.user == "alice"
+    assert ok.session is not None
+    assert ok.session.user == "alice"
     assert auth.session(ok.session.token) is ok.session
     wrong = auth.login("alice", "battery staple", "10.0.0.5")
-    assert wrong.session is None and wrong.error == "wrong user name or password"
+    assert wrong.session is None
+    assert wrong.error == "wrong user name or password"
 
 
 def test_an_unknown_user_is_refused_exactly_like_a_wrong_password(auth: Auth):
     unknown = auth.login("mallory", "correct horse", "10.0.0.5")
     wrong = auth.login("alice", "nope", "10.0.0.5")
-    assert unknown.session is None and unknown.error == wrong.error
+    assert unknown.session is None
+    assert unknown.error == wrong.error
 
 
 def test_a_session_expires_after_its_ttl_without_use(auth: Auth, clock: Clock):
@@ -78,12 +81,11 @@ def test_logout_ends_the_session(auth: Auth):
     assert auth.session(s.token) is None
 
 
-def test_removing_a_user_or_changing_their_password_ends_their_sessions(
-    auth: Auth, tmp_path: Path
-):
+def test_removing_a_user_or_changing_their_password_ends_their_sessions(auth: Auth, tmp_path: Path):
     a = auth.login("alice", "correct horse", "10.0.0.5").session
     b = auth.login("bob", "battery staple", "10.0.0.5").session
-    assert a is not None and b is not None
+    assert a is not None
+    assert b is not None
     path = tmp_path / "users"
     write_users(path, {"bob": CHEAP.hash("a new password")})
     assert auth.session(a.token) is None, "alice was removed"
@@ -95,7 +97,8 @@ def test_repeated_failures_lock_out_the_user_for_the_window(auth: Auth, clock: C
     for _ in range(3):
         assert auth.login("alice", "guess", "10.0.0.5").retry_after_s == 0
     locked = auth.login("alice", "correct horse", "10.0.0.6")
-    assert locked.session is None and locked.retry_after_s == pytest.approx(60)
+    assert locked.session is None
+    assert locked.retry_after_s == pytest.approx(60)
     assert auth.login("bob", "battery staple", "10.0.0.6").session is not None, "others may"
     clock.now += 61
     assert auth.login("alice", "correct horse", "10.0.0.6").session is not None
@@ -121,7 +124,8 @@ def test_the_rate_limiter_keeps_a_bounded_number_of_keys(clock: Clock):
 def test_the_csrf_token_must_be_the_sessions_own(auth: Auth):
     a = auth.login("alice", "correct horse", "10.0.0.5").session
     b = auth.login("bob", "battery staple", "10.0.0.5").session
-    assert a is not None and b is not None
+    assert a is not None
+    assert b is not None
     assert csrf_ok(a, a.csrf)
     assert not csrf_ok(a, b.csrf)
     assert not csrf_ok(a, None)
