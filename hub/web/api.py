@@ -22,6 +22,7 @@ import asyncio
 import json
 import logging
 import math
+import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -296,7 +297,9 @@ class Api:
         )  # fmt: skip
 
     async def metrics(self, request: web.Request) -> web.Response:
+        t0 = time.thread_time()
         body, content_type = render_metrics(self.parts.snapshot())
+        self.stats.metrics_cpu_s += time.thread_time() - t0
         return web.Response(body=body, headers={"Content-Type": content_type})
 
     # --- acting -----------------------------------------------------------------------------------

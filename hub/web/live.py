@@ -6,9 +6,10 @@ Server -> client (JSON text messages):
 - ``{"type": "state", "view": <the read model, less its event tail>, "streams": <live values>,
   "outputs": <commands.listing()>, "dashboard": <the dashboard's counters>}`` at 2 Hz;
 - ``{"type": "events", "events": [...]}``: the last events at connect, then what is new;
-- ``{"type": "frame", "id": <the client's plot id>, ...LivePlots.frame(...)}``: a plot's min/max
-  per pixel column, sent when its stream has new data (checked 20 times a second, so a stream
-  of 100 ms batches plots at 10 frames/s and a frame waits at most 50 ms);
+- a binary message per plot frame (`hub.web.frames`: a JSON header with the client's plot id,
+  then min/max per pixel column as float32), sent when its stream has new data (checked 20
+  times a second, so a stream of 100 ms batches plots at 10 frames/s and a frame waits at most
+  50 ms);
 - ``{"type": "error", "error": text}``: the client sent something that is not a valid request.
 
 Client -> server: ``{"type": "plots", "plots": [{"id", "stream", "channels", "width",
@@ -37,6 +38,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from edge.config.dashboard import DashboardConfig
 from hub.read_model import to_jsonable
+from hub.web import frames
 from hub.web.api import Api, fail
 from hub.web.events import EventTail
 from hub.web.parts import HubParts
@@ -76,7 +78,7 @@ class Client:
     sent_latest: dict[str, int] = field(default_factory=dict)
     """Per plot id, the newest sample time of the last frame queued: no frame twice."""
     state: str | None = None
-    frames: dict[str, str] = field(default_factory=dict)
+    frames: dict[str, str | bytes] = field(default_factory=dict)
     events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=PENDING_EVENTS))
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     dropped: int = 0
@@ -92,7 +94,7 @@ class Client:
         self.state = text
         self.wake.set()
 
-    def offer_frame(self, plot: str, text: str) -> None:
+    def offer_frame(self, plot: str, text: str | bytes) -> None:
         if plot in self.frames:
             self._drop()
         self.frames[plot] = text
@@ -105,8 +107,8 @@ class Client:
         self.events.extend(events)
         self.wake.set()
 
-    def take(self) -> list[str]:
-        out: list[str] = []
+    def take(self) -> list[str | bytes]:
+        out: list[str | bytes] = []
         if self.state is not None:
             out.append(self.state)
             self.state = None
@@ -186,8 +188,12 @@ class Live:
         """Start the tickers (on the service's loop)."""
         self._event_seq = self.events.last_seq
         self._tasks = [
-            asyncio.create_task(self._every(STATE_PERIOD_S, self._state_tick), name="dash-state"),
-            asyncio.create_task(self._every(FRAME_PERIOD_S, self._frame_tick), name="dash-frames"),
+            asyncio.create_task(
+                self._every(STATE_PERIOD_S, self._state_tick, "state_cpu_s"), name="dash-state"
+            ),
+            asyncio.create_task(
+                self._every(FRAME_PERIOD_S, self._frame_tick, "frames_cpu_s"), name="dash-frames"
+            ),
         ]
 
     async def close(self) -> None:
@@ -279,17 +285,21 @@ class Live:
                 if ws.closed:
                     return
                 try:
-                    await ws.send_str(text)
+                    if isinstance(text, bytes):
+                        await ws.send_bytes(text)
+                    else:
+                        await ws.send_str(text)
                 except (ConnectionError, RuntimeError):
                     return
                 self.stats.ws_sent += 1
 
     # --- the tickers ------------------------------------------------------------------------------
 
-    async def _every(self, period: float, tick: Any) -> None:
+    async def _every(self, period: float, tick: Any, cpu: str) -> None:
         loop = asyncio.get_running_loop()
         next_at = loop.time()
         while True:
+            t0 = time.thread_time()
             try:
                 tick()
             except Exception:
@@ -297,6 +307,7 @@ class Live:
                 if self.stats.tick_errors <= 10 or self.stats.tick_errors % 1000 == 0:
                     log.exception("dashboard: a live update failed (%d so far)",
                                   self.stats.tick_errors)  # fmt: skip
+            setattr(self.stats, cpu, getattr(self.stats, cpu) + time.thread_time() - t0)
             next_at = max(next_at + period, loop.time())
             await asyncio.sleep(next_at - loop.time())
 
@@ -336,17 +347,16 @@ class Live:
         if not wanted:
             return
         latest = {name: info["latest_ns"] for name, info in self.parts.live_plots.streams().items()}
-        built: dict[tuple[str, tuple[str, ...], int, float], str] = {}
+        built: dict[tuple[str, tuple[str, ...], int, float], tuple[dict[str, Any], bytes]] = {}
         for c, p in wanted:
             newest = latest.get(p.stream, 0)
             if not newest or c.sent_latest.get(p.id) == newest:
                 continue
-            body = built.get(p.key)
-            if body is None:
+            packed = built.get(p.key)
+            if packed is None:
                 frame = self.parts.live_plots.frame(p.stream, list(p.channels), p.width, p.span_s)
-                frame["sent_ns"] = time.time_ns()
-                body = json.dumps(frame, separators=(",", ":"))
-                built[p.key] = body
+                packed = frames.pack(frame)
+                built[p.key] = packed
                 self.stats.frames_computed += 1
             c.sent_latest[p.id] = newest
-            c.offer_frame(p.id, '{"type":"frame","id":' + json.dumps(p.id) + "," + body[1:])
+            c.offer_frame(p.id, frames.message(p.id, *packed))

@@ -28,6 +28,12 @@ class WebStats:
     ws_sent: int = 0
     frames_computed: int = 0
     tick_errors: int = 0
+    state_cpu_s: float = 0.0
+    """CPU seconds spent building and queueing the 2 Hz state (the loop's thread)."""
+    frames_cpu_s: float = 0.0
+    """CPU seconds spent on live plot frames."""
+    metrics_cpu_s: float = 0.0
+    """CPU seconds spent answering /metrics."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

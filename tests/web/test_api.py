@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import socket
 from collections.abc import Callable
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import aiohttp
 import pytest
 
+from hub.web import frames
 from hub.web.live import Client
 from hub.web.service import DashboardError, WebService
 from hub.web.stats import WebStats
@@ -284,8 +286,11 @@ async def _receive(ws: aiohttp.ClientWebSocketResponse, kind: str, n: int = 1) -
     out: list[Any] = []
     while len(out) < n:
         msg = await asyncio.wait_for(ws.receive(), 20)
-        assert msg.type == aiohttp.WSMsgType.TEXT, msg
-        data = json.loads(msg.data)
+        if msg.type == aiohttp.WSMsgType.BINARY:
+            data = frames.unpack(msg.data)
+        else:
+            assert msg.type == aiohttp.WSMsgType.TEXT, msg
+            data = json.loads(msg.data)
         if data["type"] == kind:
             out.append(data)
     return out
@@ -320,7 +325,10 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
     assert got["state"]["view"]["site"] == "webtest"
     assert got["state"]["streams"]["wec/t8"]["channels"] == ["heave", "surge"]
     assert got["frame"]["id"] == "a"
-    assert list(got["frame"]["channels"]) == ["surge"]
+    (surge,) = got["frame"]["channels"]
+    assert (surge["name"], surge["unit"]) == ("surge", "m")
+    assert len(surge["min"]) == len(surge["max"]) == 50
+    assert min(v for v in surge["min"] if not math.isnan(v)) == -99.0, "the batches' values"
     assert got["again"]["latest_ns"] > got["frame"]["latest_ns"]
     assert got["errors"][0]["error"] == "not JSON"
     assert "no stream 'x'" in got["errors"][1]["error"]

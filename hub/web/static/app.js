@@ -210,12 +210,13 @@
     if (!S.openView && !S.user) return;
     const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/live`);
     S.ws = ws;
+    ws.binaryType = "arraybuffer";
     ws.onopen = () => { S.retry = 500; setConn("live", "ok"); sendPlots(); };
     ws.onmessage = (m) => {
+      if (m.data instanceof ArrayBuffer) { onFrame(decodeFrame(m.data)); return; }
       const msg = JSON.parse(m.data);
       if (msg.type === "state") onState(msg);
       else if (msg.type === "events") onEvents(msg.events);
-      else if (msg.type === "frame") onFrame(msg);
       else if (msg.type === "error") toast(`live view: ${msg.error}`, true);
     };
     ws.onclose = (ev) => {
@@ -247,6 +248,7 @@
     S.streams = msg.streams || {};
     S.outputs = msg.outputs || [];
     stats.dropped_by_hub = msg.dashboard ? msg.dashboard.ws_dropped : 0;
+    stats.hub = msg.dashboard || null;
     render();
   }
 
@@ -255,6 +257,19 @@
     for (const e of events) if (e.seq > seen) S.events.push(e);
     if (S.events.length > 2000) S.events.splice(0, S.events.length - 2000);
     renderEvents();
+  }
+
+  // A frame: uint32 header length, the JSON header, then per channel `width` minima and `width`
+  // maxima as float32 (NaN: no sample in that column). See hub/web/frames.py.
+  function decodeFrame(buf) {
+    const n = new DataView(buf).getUint32(0, true);
+    const head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+    const values = new Float32Array(buf, 4 + n);
+    const w = head.width;
+    head.channels = Object.fromEntries(head.channels.map((ch, i) => [ch.name, {
+      unit: ch.unit, min: values.subarray(2 * i * w, (2 * i + 1) * w), max: values.subarray((2 * i + 1) * w, (2 * i + 2) * w),
+    }]));
+    return head;
   }
 
   function onFrame(msg) {
@@ -610,8 +625,8 @@
       for (const n of names) {
         const ch = f.channels[n];
         for (let x = 0; x < W; x++) {
-          if (ch.min[x] !== null && ch.min[x] < lo) lo = ch.min[x];
-          if (ch.max[x] !== null && ch.max[x] > hi) hi = ch.max[x];
+          if (ch.min[x] < lo) lo = ch.min[x]; // NaN compares false: skipped
+          if (ch.max[x] > hi) hi = ch.max[x];
         }
       }
       if (!Number.isFinite(lo)) { lo = -1; hi = 1; }
@@ -642,7 +657,7 @@
         for (let x = 0; x < W; x++) {
           let a = ch.min[x];
           let b = ch.max[x];
-          if (a === null || b === null) { pmin = pmax = null; continue; }
+          if (Number.isNaN(a) || Number.isNaN(b)) { pmin = pmax = null; continue; }
           const na = a;
           const nb = b;
           if (pmax !== null && pmax < a) a = pmax; // rising: join the previous column
