@@ -15,21 +15,23 @@ from typing import Any
 
 import numpy as np
 
-HEADER_KEYS = ("stream", "start_ns", "end_ns", "width", "latest_ns")
+from hub.live_plots import Frame
 
 
-def pack(frame: dict[str, Any]) -> tuple[dict[str, Any], bytes]:
-    """`LivePlots.frame`'s answer -> (the header's fields, the float32 columns)."""
-    channels = frame["channels"]
-    columns = [
-        np.asarray(channels[name][side], dtype=np.float32)  # None (no sample) -> NaN
-        for name in channels
-        for side in ("min", "max")
-    ]
-    data = np.concatenate(columns).astype("<f4", copy=False).tobytes() if columns else b""
-    header = {k: frame[k] for k in HEADER_KEYS}
-    header["channels"] = [{"name": n, "unit": c["unit"]} for n, c in channels.items()]
-    return header, data
+def pack(frame: Frame) -> tuple[dict[str, Any], bytes]:
+    """A frame -> (the header's fields, the float32 columns: per channel minima then maxima)."""
+    columns = np.stack([frame.lo.T, frame.hi.T], axis=1)  # (channels, 2, width)
+    header = {
+        "stream": frame.stream,
+        "start_ns": frame.start_ns,
+        "end_ns": frame.end_ns,
+        "width": frame.width,
+        "latest_ns": frame.latest_ns,
+        "channels": [
+            {"name": n, "unit": u} for n, u in zip(frame.channels, frame.units, strict=True)
+        ],
+    }
+    return header, columns.astype("<f4").tobytes()
 
 
 def message(plot_id: str, header: dict[str, Any], data: bytes) -> bytes:

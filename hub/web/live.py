@@ -354,7 +354,9 @@ class Live:
                 continue
             packed = built.get(p.key)
             if packed is None:
-                frame = self.parts.live_plots.frame(p.stream, list(p.channels), p.width, p.span_s)
+                frame = self.parts.live_plots.frame_arrays(
+                    p.stream, list(p.channels), p.width, p.span_s
+                )
                 packed = frames.pack(frame)
                 built[p.key] = packed
                 self.stats.frames_computed += 1

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from hub.bus import EventBus
+from hub.live_plots import Frame
 from hub.read_model import HubView
 
 
@@ -37,6 +38,15 @@ class Plots(Protocol):
         span_s: float,
         end_ns: int | None = None,
     ) -> dict[str, Any]: ...
+
+    def frame_arrays(
+        self,
+        stream: str,
+        channels: list[str] | None,
+        width: int,
+        span_s: float,
+        end_ns: int | None = None,
+    ) -> Frame: ...
 
     def streams(self) -> dict[str, dict[str, Any]]: ...
 

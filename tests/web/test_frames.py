@@ -6,17 +6,20 @@ from __future__ import annotations
 import math
 import struct
 
+import numpy as np
+
+from hub.live_plots import Frame
 from hub.web import frames
 
 
 def test_a_frame_goes_out_as_a_json_header_and_float32_columns_and_comes_back():
-    frame = {
-        "stream": "wec/t8", "start_ns": 1, "end_ns": 2, "width": 3, "latest_ns": 2,
-        "channels": {
-            "heave": {"unit": "m", "min": [1.5, None, -2.25], "max": [2.5, None, 0.0]},
-            "surge": {"unit": "m", "min": [0.0, 1.0, 2.0], "max": [0.5, 1.5, 2.5]},
-        },
-    }  # fmt: skip
+    nan = math.nan
+    frame = Frame(
+        stream="wec/t8", start_ns=1, end_ns=2, width=3, latest_ns=2,
+        channels=("heave", "surge"), units=("m", "m"),
+        lo=np.array([[1.5, 0.0], [nan, 1.0], [-2.25, 2.0]]),
+        hi=np.array([[2.5, 0.5], [nan, 1.5], [0.0, 2.5]]),
+    )  # fmt: skip
     header, data = frames.pack(frame)
     assert len(data) == 2 * 2 * 3 * 4
     for plot_id in ("p", "plot-12", "x" * 31):
