@@ -222,7 +222,9 @@ class Live:
             raise fail(503, "the hub is stopping")
         if len(self.clients) >= MAX_CLIENTS:
             raise fail(503, f"too many live clients (at most {MAX_CLIENTS})")
-        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=16 * 1024)
+        # No per-message deflate: float32 noise hardly compresses and zlib costs the hub more
+        # CPU than every other part of a frame (the link is a LAN, not a modem).
+        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=16 * 1024, compress=False)
         await ws.prepare(request)
         client = Client(ws, s.user if s else "", self.stats)
         self.clients.add(client)
