@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) bench/timing.py
 	$(PY) bench/outage.py
 	$(PY) bench/read.py
+	$(PY) bench/dashboard.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -189,6 +189,19 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         login(page, args["user"], args["password"])
         page.get_by_text(f"Logged in as {args['user']}").wait_for()
 
+        # A second plot, through the form: the thermocouple's substrate channel.
+        page.get_by_label("Plot stream").select_option("am-cell/tc")
+        page.get_by_role("group", name="Channels").get_by_label("substrate").check()
+        page.get_by_role("button", name="Add plot").click()
+        tc_plot = page.locator(".plot").filter(
+            has=page.get_by_role("img", name="Plot of am-cell/tc: substrate")
+        )
+        tc_plot.get_by_text(re.compile(r"^delay \d+ ms$")).wait_for()  # its first frame, drawn
+        result["plots_after_adding"] = page.evaluate(
+            "() => Array.from(document.querySelectorAll('canvas'))"
+            ".map((c) => c.getAttribute('aria-label'))"
+        )
+
         # Logged in, but without this session's CSRF token (the page's own fetch), and with the
         # token but from another origin (a plain request carrying the session cookie).
         result["ack_without_csrf"] = page_fetch(
@@ -247,6 +260,8 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         after = facts()
         result["recorder_before"], result["recorder_after"] = before, after
         page.screenshot(path=str(out / "after-actions.png"), full_page=True)
+        page.get_by_role("status").filter(has_text="recorder split:").wait_for(state="hidden")
+        page.screenshot(path=str(out / "docs.png"))  # the README's picture
 
         page.get_by_role("button", name="Log out").click()
         page.get_by_role("button", name="Log in").wait_for()

@@ -156,6 +156,9 @@ def test_values_and_plots_change_live(tour: Tour):
     first, later = r["values"]
     assert first != later
     assert r["plots"] == ["Plot of wec/t8: heave, surge"]
+    assert r["plots_after_adding"] == [
+        "Plot of wec/t8: heave, surge", "Plot of am-cell/tc: substrate"
+    ]  # fmt: skip
     # Drawn at the stream's pace (100 ms batches, ~10 frames/s), not at the 2 Hz state pace.
     assert r["plot_fps"] > 5, r["plot_fps"]
 

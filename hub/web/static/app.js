@@ -641,7 +641,8 @@
       ctx.strokeStyle = "#26303a";
       ctx.lineWidth = 1;
       for (let i = 0; i <= 4; i++) {
-        const val = lo + ((hi - lo) * i) / 4;
+        let val = lo + ((hi - lo) * i) / 4;
+        if (Math.abs(val) < (hi - lo) * 1e-6) val = 0;
         const y = Math.round(Y(val)) + 0.5;
         ctx.beginPath(); ctx.moveTo(0, y); ctx.lineTo(W, y); ctx.stroke();
         ctx.fillText(num(val, 3), 3 * dpr, i === 4 ? y + 11 * dpr : y - 2 * dpr);
@@ -649,11 +650,21 @@
       ctx.fillText(`−${this.span} s`, 3 * dpr, H - 3 * dpr);
       const endText = `${clock(f.end_ns)} UTC`;
       ctx.fillText(endText, W - ctx.measureText(endText).width - 3 * dpr, H - 3 * dpr);
+      // A stream slower than a pixel column (a 4 Hz thermocouple over 10 s) leaves empty columns
+      // between its samples: those are joined by a line; a longer hole is a real gap.
+      const live = S.streams[this.stream];
+      const nsPerColumn = (f.end_ns - f.start_ns) / W;
+      const join = live ? Math.max(2, Math.ceil((2 * live.bucket_ns) / nsPerColumn)) : 2;
       names.forEach((n, k) => {
         const ch = f.channels[n];
-        ctx.fillStyle = COLORS[k % COLORS.length];
+        const color = COLORS[k % COLORS.length];
+        ctx.fillStyle = color;
+        ctx.strokeStyle = color;
+        ctx.lineWidth = dpr;
         let pmin = null;
         let pmax = null;
+        let lastX = -Infinity;
+        let lastMid = 0;
         for (let x = 0; x < W; x++) {
           let a = ch.min[x];
           let b = ch.max[x];
@@ -665,6 +676,11 @@
           const y1 = Y(b);
           const y2 = Y(a);
           ctx.fillRect(x, y1, 1, Math.max(dpr, y2 - y1));
+          const mid = Y((na + nb) / 2);
+          if (x - lastX > 1 && x - lastX <= join) {
+            ctx.beginPath(); ctx.moveTo(lastX + 0.5, lastMid); ctx.lineTo(x + 0.5, mid); ctx.stroke();
+          }
+          lastX = x; lastMid = mid;
           pmin = na; pmax = nb;
         }
       });
@@ -675,7 +691,6 @@
           return el("span", {}, swatch, el("span"));
         }));
       }
-      const live = S.streams[this.stream];
       names.forEach((n, k) => {
         const i = live ? live.channels.indexOf(n) : -1;
         const val = i >= 0 ? `${num(live.latest[i])} ${live.units[i]}`.trim() : f.channels[n].unit;
