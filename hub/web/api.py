@@ -130,12 +130,8 @@ class Api:
         return s
 
     def same_origin(self, request: web.Request) -> None:
-        why = origin_problem(
-            request.headers.get("Origin"),
-            request.headers.get("Referer"),
-            request.headers.get("Host"),
-            request.scheme,
-        )
+        h = request.headers
+        why = origin_problem(h.get("Origin"), h.get("Referer"), h.get("Host"))
         if why:
             raise fail(403, f"refused: {why}")
 

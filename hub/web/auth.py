@@ -224,19 +224,19 @@ def csrf_ok(session: Session, token: str | None) -> bool:
     return bool(token) and hmac.compare_digest(session.csrf.encode(), (token or "").encode())
 
 
-def origin_problem(origin: str | None, referer: str | None, host: str | None, scheme: str) -> str:
+def origin_problem(origin: str | None, referer: str | None, host: str | None) -> str:
     """Why a state-changing request does not come from the dashboard's own page ('' when it
-    does): its Origin (or, without one, its Referer) must be this server as the browser
-    addressed it (scheme and Host)."""
+    does): its Origin (or, without one, its Referer) must name this server as the browser
+    addressed it (the Host header). The scheme is not compared, so a TLS proxy in front that
+    passes the Host header through works."""
     if not host:
         return "the request has no Host header"
-    own = f"{scheme}://{host}".lower()
-    if origin is not None and origin != "null":
-        return "" if origin.lower() == own else f"origin {origin} is not this dashboard ({own})"
+    own = host.lower()
     if origin == "null":
         return "the request comes from an opaque origin"
-    if referer:
-        parts = urlsplit(referer)
-        seen = f"{parts.scheme}://{parts.netloc}".lower()
-        return "" if seen == own else f"referer {seen} is not this dashboard ({own})"
-    return "the request has neither an Origin nor a Referer header"
+    seen_from = origin if origin is not None else referer
+    if not seen_from:
+        return "the request has neither an Origin nor a Referer header"
+    seen = urlsplit(seen_from).netloc.lower()
+    what = "origin" if origin is not None else "referer"
+    return "" if seen == own else f"{what} {seen_from} is not this dashboard ({own})"

@@ -139,7 +139,8 @@ def test_the_csrf_token_must_be_the_sessions_own(auth: Auth):
         ("http://hub.site:8080", None, "hub.site:8080", False),
         ("http://evil.example", None, "127.0.0.1:8080", True),
         ("http://127.0.0.1:9999", None, "127.0.0.1:8080", True),
-        ("https://127.0.0.1:8080", None, "127.0.0.1:8080", True),
+        ("https://127.0.0.1:8080", None, "127.0.0.1:8080", False),  # a TLS proxy in front
+        ("http://127.0.0.1:8080.evil.example", None, "127.0.0.1:8080", True),
         ("null", None, "127.0.0.1:8080", True),
         (None, "http://127.0.0.1:8080/page", "127.0.0.1:8080", False),
         (None, "http://evil.example/x", "127.0.0.1:8080", True),
@@ -150,7 +151,7 @@ def test_the_csrf_token_must_be_the_sessions_own(auth: Auth):
 def test_a_state_changing_request_must_come_from_the_dashboards_own_page(
     origin: str | None, referer: str | None, host: str | None, refused: bool
 ):
-    why = origin_problem(origin, referer, host, "http")
+    why = origin_problem(origin, referer, host)
     assert bool(why) is refused, why
 
 
