@@ -206,6 +206,13 @@ class Auth:
             self._sessions.move_to_end(token)
         return s
 
+    def valid(self, token: str | None) -> bool:
+        """Whether a session is live, without renewing it (a page left open is not a use)."""
+        now = self.clock()
+        with self._lock:
+            s = self._sessions.get(token or "")
+        return s is not None and s.expires > now and self.users.hash_of(s.user) == s.hashed
+
     def logout(self, token: str | None) -> None:
         if token:
             with self._lock:

@@ -74,6 +74,10 @@ class Client:
     ws: web.WebSocketResponse
     user: str
     stats: WebStats
+    token: str = ""
+    """The session it was opened with: with `open_view` off, the socket ends with it."""
+    ending: bool = False
+    """Its sender closes the socket (4001: log in again) instead of sending more."""
     plots: dict[str, PlotRequest] = field(default_factory=dict)
     sent_latest: dict[str, int] = field(default_factory=dict)
     """Per plot id, the newest sample time of the last frame queued: no frame twice."""
@@ -226,7 +230,7 @@ class Live:
         # CPU than every other part of a frame (the link is a LAN, not a modem).
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=16 * 1024, compress=False)
         await ws.prepare(request)
-        client = Client(ws, s.user if s else "", self.stats)
+        client = Client(ws, s.user if s else "", self.stats, s.token if s else "")
         self.clients.add(client)
         self.stats.ws_connections += 1
         self.stats.ws_clients = len(self.clients)
@@ -283,6 +287,9 @@ class Live:
         while not ws.closed:
             await client.wake.wait()
             client.wake.clear()
+            if client.ending:
+                await ws.close(code=4001, message=b"log in again")
+                return
             for text in client.take():
                 if ws.closed:
                     return
@@ -339,13 +346,18 @@ class Live:
         new = self.events.since(self._event_seq, PENDING_EVENTS)
         if new:
             self._event_seq = new[-1]["seq"]
-        for c in self.clients:
+        for c in list(self.clients):
+            if not self.cfg.open_view and not self.api.auth.valid(c.token):
+                # Logged out or expired: no more looking. 4001: the page shows its login.
+                c.ending = True
+                c.wake.set()
+                continue
             c.offer_state(text)
             if new:
                 c.offer_events(new)
 
     def _frame_tick(self) -> None:
-        wanted = [(c, p) for c in self.clients for p in c.plots.values()]
+        wanted = [(c, p) for c in self.clients if not c.ending for p in c.plots.values()]
         if not wanted:
             return
         latest = {name: info["latest_ns"] for name, info in self.parts.live_plots.streams().items()}

@@ -386,3 +386,25 @@ def test_a_slow_client_gets_the_newest_state_and_frames_and_the_rest_is_counted_
     assert len(json.loads(pending[1])["events"]) == 500
     assert stats.ws_dropped == 999 + 999 + 1500
     assert client.take() == []
+
+
+def test_with_open_view_off_a_live_socket_ends_with_its_session(make_web: MakeWeb):
+    web = make_web(open_view=False)
+    http = web.client()
+    http.login("alice")
+
+    async def run() -> int | None:
+        headers = {"Cookie": http.cookie, "Origin": http.origin or ""}
+        async with (
+            aiohttp.ClientSession() as s,
+            s.ws_connect(f"http://127.0.0.1:{web.port}/api/live", headers=headers) as ws,
+        ):
+            await _receive(ws, "state")
+            loop = asyncio.get_running_loop()
+            await loop.run_in_executor(None, http.post, "/api/logout")
+            while True:
+                msg = await asyncio.wait_for(ws.receive(), 20)
+                if msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED):
+                    return ws.close_code
+
+    assert asyncio.run(run()) == 4001

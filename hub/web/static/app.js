@@ -176,6 +176,9 @@
     const locked = !S.openView && !inUser;
     $("locked").hidden = !locked;
     $("main").hidden = locked;
+    if (!inUser && !S.usersDefined) {
+      $("login-error").textContent = "no users yet: run `fleetdaq users add NAME` on the hub";
+    }
     for (const b of document.querySelectorAll(".needs-login")) {
       b.disabled = !inUser;
       b.title = inUser ? "" : "log in to act";
@@ -222,6 +225,12 @@
     ws.onclose = (ev) => {
       if (S.ws !== ws) return;
       S.ws = null;
+      if (ev.code === 4001) { // the session ended: show the login, connect again after it
+        S.user = null; S.csrf = null;
+        setConn("logged out", "warn");
+        applySession();
+        return;
+      }
       setConn(ev.code === 1001 ? "hub stopped — reconnecting…" : "reconnecting…", ev.code === 1001 ? "bad" : "warn");
       setTimeout(connect, S.retry);
       S.retry = Math.min(S.retry * 2, 10000);
