@@ -35,6 +35,9 @@ bench: $(STAMP)
 	$(PY) bench/timing.py
 	$(PY) bench/outage.py
 	$(PY) bench/read.py
+	$(PY) bench/alarms.py
+	$(PY) bench/control.py
+	$(PY) bench/foxglove.py
 	$(PY) bench/dashboard.py
 
 clean:

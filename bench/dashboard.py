@@ -50,7 +50,7 @@ site: dashbench
 hub:
   listen: [tcp/127.0.0.1:7447]
   recorder: {{file_duration_s: 600}}
-  dashboard: {{listen: "127.0.0.1:8080", users_file: {users}}}
+  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
   snapshot: {{enabled: false}}
 nodes:
   wec:

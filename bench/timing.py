@@ -111,7 +111,7 @@ def run(scans: int, args: argparse.Namespace) -> dict[str, Any]:
         n = block.raw.shape[0]
         fit.observe(index + n - 1, block.host_ns, block.device_ns)
         truth = ljm.scan_time_ns(index)
-        ours[k] = fit.time_of(index) - truth
+        ours[k] = fit.stamp(index, n)[0] - truth
         raw_first = ljm.core_timer_at_scan(index) % TWO32
         raw_newest = ljm.core_timer_at_scan(index + n - 1) % TWO32
         theirs[k] = modaq.stamp(raw_first, raw_newest, block.host_ns) - truth

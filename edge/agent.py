@@ -4,6 +4,10 @@ Streams start acquiring at once, into their spools; the agent connects to the hu
 the background and attaches the publishers when it answers. It publishes typed node health
 (`NodeHealth`) about once a second, relays the hub's acks to the spools (refusing any ack for a
 sequence not sent yet), and holds a liveliness token so the hub sees the node come and go.
+
+Its outputs (`edge.outputs`) start at their initial values in the safe state; the queryable
+that answers commands and the hub-heartbeat watch are attached with the session. Interlocks run
+in the stream loops, so they hold whether or not the hub is there.
 """
 
 from __future__ import annotations
@@ -22,11 +26,14 @@ from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.display import DisplayLoop, create_displays
 from edge.drivers.base import DriverHealth
+from edge.drivers.shared import SharedDevices
+from edge.drivers.table import create_driver
 from edge.errors import DriverError
 from edge.event_publisher import EventPublisher
 from edge.host_metrics import HostMetricsReader
 from edge.keys import SiteKeys
 from edge.messages import KeyValue, NodeHealth, StreamHealth
+from edge.outputs import OutputService
 from edge.paths import default_spool_dir
 from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
@@ -64,6 +71,9 @@ class EdgeAgent:
         self._token: Any = None
         self.loops: list[StreamLoop] = []
         self.displays: list[DisplayLoop] = []
+        self.shared = SharedDevices()
+        """Devices several drivers reach (a T8 that streams and has outputs, a weld cell)."""
+        self.outputs: OutputService | None = None
         self.time_sync: TimeSyncMonitor = NoTimeSyncMonitor()
         self._stop = threading.Event()
         self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
@@ -115,15 +125,22 @@ class EdgeAgent:
                 node_cfg.spool.max_age_s,
                 node_cfg.spool.segment_bytes,
             )
-            loop = StreamLoop(sid, node, name, cfg, None, events, spool, node_cfg.spool)
+            driver = create_driver(cfg, shared=self.shared)
+            loop = StreamLoop(sid, node, name, cfg, None, events, spool, node_cfg.spool, driver)
             loop.time_sync = self.time_sync
             self.loops.append(loop)
+        outputs = self.outputs = OutputService(sid, node, node_cfg, events, self.shared)
+        for loop in self.loops:
+            hook = outputs.interlocks.hook(loop.name, loop.channel_index)
+            if hook is not None:
+                loop.batch_hooks.append(hook)
         self.displays = create_displays(
             node_cfg,
             self.latest_value,
             lambda level, tag, msg: events.emit(level, "display", tag, msg),
         )
         self.started_ns = time.time_ns()
+        outputs.start()
         for loop in self.loops:
             loop.start()
         for display in self.displays:
@@ -199,6 +216,8 @@ class EdgeAgent:
                     loop.attach(session)
                 assert self.events is not None
                 self.events.attach(session)
+                if self.outputs is not None:
+                    self.outputs.attach(session)
             log.info("connected to the hub at %s", self.endpoints)
             self._health_thread.start()
             return
@@ -214,6 +233,7 @@ class EdgeAgent:
             host=self._host.read(),
             streams=tuple(self._stream_health(loop, now) for loop in self.loops),
             clock=self.time_sync.message(),
+            outputs=self.outputs.states() if self.outputs is not None else (),
         )
 
     @staticmethod
@@ -268,6 +288,8 @@ class EdgeAgent:
                 loop.stop()
             for loop in self.loops:
                 loop.join(5.0)
+            if self.outputs is not None:
+                self.outputs.close()  # every output to its safe value, devices closed
             for thread in (self._connector, self._health_thread, self._sync_thread):
                 if thread.is_alive():
                     thread.join(5.0)

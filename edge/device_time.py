@@ -77,6 +77,9 @@ class DeviceTimeFit:
         self._device_period = self.nominal_period_ns
         self._segment: tuple[int, int] | None = None  # (index, device ns) of a segment's first read
         self._last: tuple[int, int] | None = None  # (index, device ns) of the newest read
+        self._next_ns: int | None = None  # where the last stamped batch ended
+        self.slewed = 0
+        """Batches stamped from the previous batch's end, not the fit (see `stamp`)."""
         self._clear_fit()
 
     def _clear_fit(self) -> None:
@@ -195,6 +198,29 @@ class DeviceTimeFit:
         last_index, last_device = self._last
         x = last_device - self._origin[0] + (index - last_index) * self._device_period
         return self._origin[1] + round(self._offset + self._slope * x)
+
+    def stamp(self, index: int, scans: int) -> tuple[int, float]:
+        """(first-sample time, period) for the `scans` scans from `index`: the fit's — except
+        that a batch never starts before the previous one ended.
+
+        The fit moves back when a read faster than every earlier one lowers it (under load,
+        reads come late, then one comes quickly). When it moved back by at most half this
+        batch's length, the batch starts where the previous one ended and its period shrinks
+        so that it ends where the fit says: sample times only increase, and are back on the fit
+        by the batch's end (each sample is off by at most the move, shrinking to 0). A larger
+        move back is a clock step (the fit restarted): the fit's times are used as they are.
+        """
+        t0 = self.time_of(index)  # int ns: a float64 holds today's times to 256 ns only
+        period = self.period_ns
+        span = period * scans
+        prev = self._next_ns
+        if prev is not None and t0 < prev:
+            end = (t0 - prev) + span  # where the fit ends this batch, from `prev`
+            if end >= 0.5 * span:
+                t0, period = prev, end / scans
+                self.slewed += 1
+        self._next_ns = t0 + round(period * scans)
+        return t0, period
 
     @property
     def period_ns(self) -> float:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     AfterValidator,
@@ -172,3 +172,97 @@ class SimFault(Strict):
 def as_identifier(value: Any) -> Any:
     """A serial number written as a bare number in YAML is still an identifier (a string)."""
     return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+# --- Outputs ----------------------------------------------------------------------------------
+
+
+class OutputBase(Strict):
+    """What every output has, whatever its driver. Each driver's schema extends this.
+
+    Values are in the output's engineering unit (volts for a DAC). A digital output holds 0 or
+    1 exactly. The safe value has no default: whoever wires an output says what is safe.
+    """
+
+    driver: str
+    """The driver's name in `edge.drivers.table.OUTPUTS` (each schema narrows it to its own)."""
+    kind: Literal["analog", "digital"]
+    """Fixed by drivers that can only be one (a DAC is analog, a relay pin digital)."""
+    unit: str = ""
+    min: Float | None = None
+    """Analog: the lowest value a command may set (required). Digital: 0 (may be omitted)."""
+    max: Float | None = None
+    """Analog: the highest value a command may set (required). Digital: 1 (may be omitted)."""
+    max_rate: Annotated[Float, Field(gt=0)] | None = None
+    """Analog only: units per second. A command is refused (too_fast) when
+    |new - current| / (seconds since the output last changed) exceeds it."""
+    safe: Float
+    """Where the output goes at start (unless `initial`), at a clean stop, when the hub's
+    heartbeat is lost, when an interlock forces it, and in the device's hardware watchdog."""
+    initial: Float | None = None
+    """Written at start; default: `safe`."""
+    arm_required: bool = False
+    """The output must be armed before any set or pulse, and an interlock that forces it safe
+    disarms it. (Every output needs arming after a safe state, see docs/control-edge.md.)"""
+    readback: Literal["device", "last_written"] = "device"
+    """Where the reported value comes from: the device (read back after every write and
+    polled), or the last value written (flagged as such in every reply)."""
+    description: str = ""
+
+    DEVICE_SPAN: ClassVar[tuple[float, float] | None] = None
+    """What the device can output at all (a T8 DAC: -0.1..10 V); limits must lie within."""
+
+    @model_validator(mode="after")
+    def _limits_fit(self) -> OutputBase:
+        if self.kind == "digital":
+            for key, want in (("min", 0.0), ("max", 1.0)):
+                got = getattr(self, key)
+                if got is not None and got != want:
+                    raise ValueError(f"{key}: a digital output's {key} is {want:g} (got {got:g})")
+            for key in ("safe", "initial"):
+                got = getattr(self, key)
+                if got is not None and got not in (0.0, 1.0):
+                    raise ValueError(f"{key}: a digital output is 0 or 1 (got {got:g})")
+            if self.max_rate is not None:
+                raise ValueError("max_rate: only for analog outputs")
+            return self
+        if self.min is None or self.max is None:
+            missing = "min" if self.min is None else "max"
+            raise ValueError(f"{missing}: an analog output needs min and max limits")
+        if self.min >= self.max:
+            raise ValueError(f"min ({self.min:g}) must be below max ({self.max:g})")
+        span = self.device_span
+        if span is not None:
+            unit = f" {self.unit}" if self.unit else ""
+            for key, got in (("min", self.min), ("max", self.max)):
+                if not span[0] <= got <= span[1]:
+                    raise ValueError(
+                        f"{key}: {got:g}{unit} is beyond what the device can output "
+                        f"({span[0]:g}..{span[1]:g}{unit})"
+                    )
+        for key in ("safe", "initial"):
+            got = getattr(self, key)
+            if got is not None and not self.min <= got <= self.max:
+                raise ValueError(f"{key}: {got:g} is outside the limits {self.min:g}..{self.max:g}")
+        return self
+
+    @property
+    def device_span(self) -> tuple[float, float] | None:
+        return self.DEVICE_SPAN
+
+    @property
+    def low(self) -> float:
+        return 0.0 if self.min is None else self.min
+
+    @property
+    def high(self) -> float:
+        return 1.0 if self.max is None else self.max
+
+    @property
+    def initial_value(self) -> float:
+        return self.safe if self.initial is None else self.initial
+
+    @property
+    def resource(self) -> str:
+        """The physical thing it drives, in words: two outputs must not drive the same one."""
+        raise NotImplementedError

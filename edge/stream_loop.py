@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -74,6 +75,10 @@ class StreamLoop:
         self.channel_index = {ch.name: i for i, ch in enumerate(cfg.channels)}
         self.latest: npt.NDArray[np.float64] | None = None
         """The newest scan in engineering units (what displays show)."""
+        self.batch_hooks: list[Callable[[npt.NDArray[np.float64]], None]] = []
+        """Called with every batch's (scans, channels) engineering values, NaN where invalid,
+        on this stream's thread before the batch is spooled: the edge interlocks."""
+        self._hook_failed = False
         self.scale = np.array([ch.scale for ch in cfg.channels])
         self.offset = np.array([ch.offset for ch in cfg.channels])
         self._tiled_scale: npt.NDArray[np.float64] = np.empty(0)
@@ -191,14 +196,16 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
+            for hook in self.batch_hooks:
+                self._run_hook(hook, values)
             self.latest = values[-1]
             for ev in block.events:
-                self.events.emit(ev.level, self.name, ev.tag, ev.message)
+                self.events.emit(ev.level, self.name, ev.tag, ev.message, **dict(ev.fields))
             self.time_fit.observe(index + scans - 1, block.host_ns, block.device_ns)
-            t0 = self.time_fit.time_of(index)
+            t0, period = self.time_fit.stamp(index, scans)
             seq = c.next_sequence
             payload = self.encoder.encode(
-                seq, t0, self.time_fit.period_ns, values, self.time_sync.quality, block.status
+                seq, t0, period, values, self.time_sync.quality, block.status
             )
             for d in self.spool.append(seq, t0, payload):
                 self.events.emit(
@@ -220,6 +227,22 @@ class StreamLoop:
             c.next_sequence = seq + 1
             c.batches += 1
             c.scans += scans
+
+    def _run_hook(
+        self, hook: Callable[[npt.NDArray[np.float64]], None], values: npt.NDArray[np.float64]
+    ) -> None:
+        try:
+            hook(values)
+        except Exception as err:  # acquisition goes on; the failure is said loudly, once
+            log.exception("%s: batch hook", self.name)
+            if not self._hook_failed:
+                self._hook_failed = True
+                self.events.emit(
+                    logging.CRITICAL,
+                    self.name,
+                    "interlock_error",
+                    f"evaluating this stream's interlocks failed: {err!r}",
+                )
 
     def _engineering(self, raw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """raw * scale + offset per channel, as two flat passes: numpy broadcasts a short

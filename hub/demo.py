@@ -20,6 +20,7 @@ from rich.table import Table
 from edge.config.site import SiteConfig
 from hub.errors import HubError, RouterError
 from hub.event_log import format_event
+from hub.layer_waits import LayerWaits
 from hub.read_model import HubView
 from hub.runtime import HubRuntime
 from hub.web.users import UsersFileError, hash_password, read_users, write_users
@@ -27,7 +28,9 @@ from hub.web.users import UsersFileError, hash_password, read_users, write_users
 log = logging.getLogger("fleetdaq.demo")
 
 
-def status_view(view: HubView, site: SiteConfig, elapsed: float) -> Group:
+def status_view(
+    view: HubView, site: SiteConfig, elapsed: float, notes: list[str] | None = None
+) -> Group:
     """The stream table and the last events under it, from a read-model snapshot."""
     events = Table(title="last events", show_header=False, box=None, title_justify="left")
     events.add_column("event", overflow="fold")
@@ -36,7 +39,10 @@ def status_view(view: HubView, site: SiteConfig, elapsed: float) -> Group:
             "red" if e.level >= logging.ERROR else "yellow" if e.level >= logging.WARNING else ""
         )
         events.add_row(format_event(e), style=style)
-    return Group(status_table(view, site, elapsed), alarm_table(view), events)
+    parts: list[Any] = [status_table(view, site, elapsed), alarm_table(view)]
+    if notes:
+        parts.append("\n".join(notes))
+    return Group(*parts, events)
 
 
 _SEVERITY_STYLE = {"critical": "bold red", "major": "red", "minor": "yellow", "info": ""}
@@ -225,6 +231,7 @@ def run_demo(
     assert session is not None
     # The demo's edges spool under the data folder, so a rerun replays what the last one left.
     procs = _spawn_edges(site, config, endpoint, session.dir / "logs", data_dir / "spool")
+    layers = LayerWaits(site, h.live_plots)
     t0 = time.monotonic()
     died: list[str] = []
     failed_services: list[tuple[str, str]] = []
@@ -238,10 +245,11 @@ def run_demo(
             last_line = 0.0
             while not stop.wait(0.5):
                 elapsed = time.monotonic() - t0
-                live.update(status_view(h.snapshot(), site, elapsed))
+                layers.update()
+                live.update(status_view(h.snapshot(), site, elapsed, layers.lines()))
                 if not console.is_terminal and elapsed - last_line >= 5:
                     last_line = elapsed
-                    console.print(status_view(h.snapshot(), site, elapsed))
+                    console.print(status_view(h.snapshot(), site, elapsed, layers.lines()))
                 died = [n for n, (p, _) in procs.items() if p.poll() is not None]
                 failed_services = h.failures()
                 if died or failed_services or (duration is not None and elapsed >= duration):
@@ -255,7 +263,11 @@ def run_demo(
     summary["dashboard"] = (
         {"url": web.url, "user": DEMO_USER, "users_file": str(users_file)} if web else None
     )
-    console.print(status_view(h.snapshot(), site, summary["duration_s"]))
+    layers.update()
+    if layers.robots:
+        summary["layer_waits"] = layers.summary()
+        summary["rules"] = h.snapshot().rules
+    console.print(status_view(h.snapshot(), site, summary["duration_s"], layers.lines()))
     console.print(
         f"recorded into {session.dir} ({len(summary['files'])} file(s)); "
         f"edge logs in {session.dir / 'logs'}"

@@ -35,6 +35,7 @@ from hub.bus import EventBus
 from hub.commands import CommandService
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
+from hub.foxglove.service import FoxgloveLive
 from hub.heartbeat import Heartbeat
 from hub.hub_health import HubHealth
 from hub.live_plots import LivePlots
@@ -127,7 +128,14 @@ class HubRuntime:
             self._record_action,
         )
         self.snapshots = (
-            SnapshotBuffer(site, self.data_dir, self.bus, self.model, self.feed)
+            SnapshotBuffer(
+                site,
+                self.data_dir,
+                self.bus,
+                self.model,
+                self.feed,
+                lambda: self.recorder.recording,
+            )
             if site.hub.snapshot.enabled
             else None
         )
@@ -175,6 +183,7 @@ class HubRuntime:
                 self.commands,
                 self.rules,
                 self.recorder_requests,
+                *FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot),
                 self.heartbeat,
                 self.status,
                 *([self.dashboard] if self.dashboard is not None else []),

@@ -14,7 +14,8 @@ A snapshot is a folder ``<data_dir>/snapshots/<UTC time>/`` written like a recor
 (one MCAP file and a rosbag2 ``metadata.yaml``), so `fleetdaq.read`, `fleetdaq verify`,
 rosbags and ``ros2 bag`` open it like any recording. Files are written on the buffer's own
 thread; an alarm-triggered snapshot waits `GRACE_S` so the batches in flight at the alarm are in
-it, and alarms closer together than `min_interval_s` share one snapshot.
+it, and alarms closer together than `min_interval_s` share one snapshot. While the recorder is
+writing, an alarm takes no snapshot: its seconds are in the recording already.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
@@ -59,8 +61,12 @@ class SnapshotBuffer:
         bus: EventBus,
         model: ReadModel,
         feed: BatchFeed,
+        recording: Callable[[], bool] = lambda: False,
     ) -> None:
         self.cfg = site.hub.snapshot
+        self.recording = recording
+        """Whether the recorder is writing: then an alarm's seconds are in the recording and
+        it takes no snapshot (a request always does)."""
         self.site = site
         self.root = data_dir / "snapshots"
         self.bus = bus
@@ -73,6 +79,7 @@ class SnapshotBuffer:
         self.written: list[str] = []
         self.failed = 0
         self.merged = 0
+        self.skipped_recording = 0
         self._last_alarm_ns = 0
         self._pending_alarm: Future[tuple[bool, str]] | None = None
         self._pool: ThreadPoolExecutor | None = None
@@ -127,6 +134,9 @@ class SnapshotBuffer:
 
     def _on_event(self, e: Event) -> None:
         if e.tag != "alarm_raised" or e.get("severity") not in self.cfg.on_alarm:
+            return
+        if self.recording():
+            self.skipped_recording += 1
             return
         pool = self._pool
         if pool is None:
@@ -229,6 +239,7 @@ class SnapshotBuffer:
             "last": self.written[-1] if self.written else "",
             "failed": self.failed,
             "merged_alarms": self.merged,
+            "skipped_recording": self.skipped_recording,
             "on_alarm": list(self.cfg.on_alarm),
         }
 

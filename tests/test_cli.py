@@ -17,8 +17,7 @@ from tests.procs import REPO, free_port
 
 DEMO_SITE = """\
 site: clitest
-hub: {{listen: [tcp/127.0.0.1:{port}], recorder: {{file_duration_s: 2}},
-      dashboard: {{listen: "127.0.0.1:0"}}}}
+hub: {{listen: [tcp/127.0.0.1:{port}], recorder: {{file_duration_s: 2}}}}
 nodes:
   wec:
     streams:

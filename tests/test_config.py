@@ -95,6 +95,60 @@ BAD: dict[str, tuple[str, str]] = {
         "hub.notify.groups.ops.on[1]",
         "'raised', 'cleared' or 'acked'",
     ),
+    # Outputs, interlocks and control: nothing unsafe or unreachable gets past the loader.
+    "bad_output_safe_missing.yaml": ("nodes.rig.outputs.valve.safe", "required key is missing"),
+    "bad_output_dac_beyond_device.yaml": (
+        "nodes.rig.outputs.valve.max",
+        "12 V is beyond what the device can output (-0.1..10 V)",
+    ),
+    "bad_output_digital_value.yaml": (
+        "nodes.rig.outputs.relay.safe",
+        "a digital output is 0 or 1 (got 0.5)",
+    ),
+    "bad_output_analog_no_limits.yaml": (
+        "nodes.rig.outputs.heater.max",
+        "an analog output needs min and max limits",
+    ),
+    "bad_output_max_rate_digital.yaml": (
+        "nodes.rig.outputs.relay.max_rate",
+        "only for analog outputs",
+    ),
+    "bad_output_pcf8574_address.yaml": (
+        "nodes.rig.outputs.relay.address",
+        "0x30 is not a PCF8574 address",
+    ),
+    "bad_output_same_pin.yaml": (
+        "nodes.rig.outputs.b",
+        "drives pin P3 of the PCF8574 at 0x20 on I2C bus 1, like outputs.a",
+    ),
+    "bad_output_unknown_driver.yaml": (
+        "nodes.rig.outputs.valve",
+        "unknown driver 'labjack_t7_dac' (expected one of labjack_t8_dac",
+    ),
+    "bad_interlock_other_stream.yaml": (
+        "nodes.rig.interlocks.hot.channel",
+        "no stream 'env' on this node",
+    ),
+    "bad_interlock_unknown_output.yaml": (
+        "nodes.rig.interlocks.hot.outputs[0]",
+        "no output 'heatr' on this node",
+    ),
+    "bad_interlock_two_limits.yaml": (
+        "nodes.rig.interlocks.hot",
+        "give exactly one of above: or below:",
+    ),
+    "bad_control_safe_after_zero.yaml": (
+        "nodes.rig.control.safe_after_s",
+        "must be at least 0.5",
+    ),
+    "bad_weld_cell_unknown.yaml": (
+        "nodes.rig.streams.tc.sim.cell",
+        "no weld_robot_sim stream with cell 'weld2'",
+    ),
+    "bad_t8_simulated_and_real.yaml": (
+        "nodes.rig.outputs.valve",
+        "the T8 'ANY' is simulated in streams.t8",
+    ),
 }
 
 GOOD = sorted(p.name for p in (REPO / DATA).glob("good_*.yaml"))

@@ -120,3 +120,39 @@ def test_a_power_cycled_device_or_a_host_clock_step_restarts_the_fit() -> None:
     clock.observe(last, host - 50_000_000, device)  # the host clock stepped 50 ms back
     assert clock.restarts == 1
     assert clock.time_of(last) <= host - 50_000_000
+
+
+def test_sample_times_only_increase_when_a_fast_read_lowers_the_fit() -> None:
+    """Under load reads come late, then one comes quickly and the fit drops: the next batch
+    would start before the previous one ended. It starts where that one ended instead, and
+    ends where the fit says."""
+    rate, scans = 2000.0, 100
+    clock = DeviceTimeFit(rate)
+    period = 1e9 / rate
+    latencies = [8e6] * 20 + [0.2e6] + [8e6] * 5 + [0.1e6] * 5  # 8 ms late, then a fast read
+    times: list[np.ndarray] = []
+    for k, latency in enumerate(latencies, start=1):
+        last = k * scans - 1
+        clock.observe(last, round(T0 + last * period + latency))
+        t0, p = clock.stamp(last + 1 - scans, scans)
+        times.append((t0 - T0) + np.arange(scans) * p)  # from T0: float64 holds ns there
+        # Whatever was stamped, the batch ends where the fit says the next one starts.
+        assert abs(times[-1][-1] + p - (clock.time_of(last + 1) - T0)) < 2
+    t = np.concatenate(times)
+    assert np.all(np.diff(t) > 0), "never back in time across batches"
+    assert clock.slewed >= 1, "the fast read did move the fit back"
+    assert clock.restarts == 0
+
+
+def test_a_clock_step_back_is_not_smoothed_over() -> None:
+    clock = DeviceTimeFit(1000.0)
+    for k in range(1, 50):
+        last = k * 100 - 1
+        clock.observe(last, T0 + last * 1_000_000 + 1000, last * 1_000_000)
+        clock.stamp(last - 99, 100)
+    step = 2_000_000_000  # the host clock steps back 2 s
+    last = 50 * 100 - 1
+    clock.observe(last, T0 + last * 1_000_000 - step, last * 1_000_000)
+    t0, _ = clock.stamp(last - 99, 100)
+    assert clock.restarts == 1
+    assert t0 < T0 + (last - 99) * 1_000_000 - step + 1_000_000, "the new clock's time, as is"

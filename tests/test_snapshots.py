@@ -123,6 +123,13 @@ def test_an_alarm_writes_the_seconds_before_it_and_a_second_alarm_shares_it(
         assert taken
         assert (taken[-1].get("why") or "").startswith("alarm heave_")
         assert not list((runtime.data_dir / "snapshots").glob("*/*.active"))
+
+        # Recording again: an alarm's seconds are in the recording, so no snapshot is taken.
+        runtime.recorder.start_recording("test")
+        send(1.0, 2)  # the alarms clear...
+        send(9.0, 1)  # ...and raise again
+        wait_until(lambda: runtime.snapshot().snapshots["skipped_recording"] >= 1, 20, "the skip")
+        assert runtime.snapshot().snapshots["written"] == 1
     finally:
         pub.undeclare()
         session.close()

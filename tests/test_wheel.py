@@ -67,7 +67,7 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
     )
     assert r.returncode == 0, r.stderr[-4000:]
     summary = json.loads(r.stdout)
-    assert set(summary["streams"]) == {"wec/t8", "am-cell/tc", "shore/env"}
+    assert set(summary["streams"]) == {"wec/t8", "am-cell/tc", "am-cell/robot", "shore/env"}
     for name, s in summary["streams"].items():
         assert s["batches"] > 0, name
         assert s["gaps"] == 0, name

@@ -40,12 +40,14 @@ class FoxgloveConfig(Strict):
     """Foxglove (or Lichtblick) connects here with "Foxglove WebSocket" and sees every stream,
     the events, the alarms and the nodes' health live."""
 
-    enabled: bool = True
+    enabled: bool = False
     listen: Listen = "127.0.0.1:8765"
 
 
 class DashboardConfig(Strict):
-    enabled: bool = True
+    enabled: bool = False
+    """Off unless the site file says so: a hub opens no port but its router's without being
+    asked (`fleetdaq demo`'s site turns it on)."""
     listen: Listen = "127.0.0.1:8080"
     """Where the dashboard and ``/metrics`` are served. The default serves this machine only;
     ``0.0.0.0:8080`` serves the LAN (put it behind the site's firewall)."""

@@ -43,8 +43,8 @@ class SnapshotConfig(Strict):
     """The snapshot buffer (rosbag2's snapshot mode): the last `seconds` of every stream, the
     events and the health, in bounded memory, written to ``<data_dir>/snapshots/`` on request
     (`fleetdaq rec snapshot`, the dashboard, a rule's ``record: snapshot``) or when an alarm of
-    one of the `on_alarm` severities is raised: the minute before an event is kept even when
-    nobody was recording."""
+    one of the `on_alarm` severities is raised while the recorder is stopped: the minute before
+    an event is kept even when nobody was recording."""
 
     enabled: bool = True
     seconds: Annotated[Float, Field(gt=0, le=3600)] = 60.0

@@ -14,14 +14,14 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from edge.config.site import SiteConfig
-from edge.drivers.table import DRIVERS
+from edge.drivers.table import DRIVERS, OUTPUTS
 from edge.errors import ConfigError
 from edge.schema import CHANNEL_NAME
 
 _ALARM_TAGS = ("channel", "stream", "node", "hub")
 _CONTROL_TAGS = ("channel", "alarm", "node", "output", "all", "any", "not", "set", "pulse",
                  "record", "event")  # fmt: skip
-_KEY_PATH = re.compile(r"^([a-z_]+(?:\.[A-Za-z0-9_/-]+|\[\d+\])+): (.*)$", re.S)
+_KEY_PATH = re.compile(r"^([a-z_]+(?:\.[A-Za-z0-9_/-]+|\[\d+\])*): (.*)$", re.S)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -109,6 +109,8 @@ def _user_loc(loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
             continue  # the error is about a mapping key itself; the path already ends with it
         if i == 4 and loc[0] == "nodes" and loc[2] == "streams" and item in DRIVERS:
             continue  # pydantic puts the union tag in the path; the user never wrote it
+        if i == 4 and loc[0] == "nodes" and loc[2] == "outputs" and item in OUTPUTS:
+            continue
         if i == 2 and loc[0] == "alarms" and item in _ALARM_TAGS:
             continue  # likewise the alarm's kind
         prev = loc[i - 1] if i else None
@@ -141,7 +143,7 @@ def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
         candidates = _models_in(annotation)
         if len(candidates) > 1:  # a discriminated union: pydantic puts the tag next
             tag = str(loc[i]) if i < len(loc) else ""
-            spec = DRIVERS.get(tag)
+            spec = DRIVERS.get(tag) or OUTPUTS.get(tag)
             by_field = [m for m in candidates if tag in m.model_fields]
             model = spec.schema if spec is not None else (by_field[0] if by_field else None)
             i += 1
@@ -200,7 +202,12 @@ def _unknown_key(loc: tuple[int | str, ...]) -> str:
 def _bad_name(loc: tuple[int | str, ...], name: object, pattern: object) -> str:
     what = "name"
     if loc and loc[-1] == "[key]" and len(loc) >= 3:
-        what = {"nodes": "node name", "streams": "stream name"}.get(str(loc[-3]), "name")
+        what = {
+            "nodes": "node name",
+            "streams": "stream name",
+            "outputs": "output name",
+            "interlocks": "interlock name",
+        }.get(str(loc[-3]), "name")
     elif loc == ("site",):
         what = "site name"
     elif loc and loc[-1] == "name":
@@ -238,12 +245,13 @@ def _describe(err: dict[str, Any]) -> str:
     loc: tuple[int | str, ...] = tuple(err["loc"])
     ctx: dict[str, Any] = err.get("ctx") or {}
     got = _short(err.get("input"))
+    names = OUTPUTS if len(loc) > 2 and loc[2] == "outputs" else DRIVERS
     fixed = {
         "missing": "required key is missing",
         "union_tag_invalid": (
-            f"unknown driver {ctx.get('tag')!r} (expected one of {', '.join(DRIVERS)})"
+            f"unknown driver {ctx.get('tag')!r} (expected one of {', '.join(names)})"
         ),
-        "union_tag_not_found": f"missing 'driver' (one of {', '.join(DRIVERS)})",
+        "union_tag_not_found": f"missing 'driver' (one of {', '.join(names)})",
         "dict_type": f"expected a mapping of keys, got {got}",
         "model_type": f"expected a mapping of keys, got {got}",
         "model_attributes_type": f"expected a mapping of keys, got {got}",
@@ -300,8 +308,10 @@ def parse_config(text: str, source: str) -> SiteConfig:
         where = _path(list(_user_loc(tuple(first["loc"]))))
         what = _describe(dict(first))
         nested = _KEY_PATH.match(what)
-        if where == "(top level)" and nested:  # a whole-site check names its own key path
-            where, what = nested.group(1), nested.group(2)
+        if nested:  # a check of a whole mapping names the key path below it
+            below = nested.group(1)
+            where = below if where == "(top level)" else f"{where}.{below}"
+            what = nested.group(2)
         raise ConfigError(_one_line(f"{source}: {where}: {what}{more}")) from None
 
 

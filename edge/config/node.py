@@ -1,6 +1,7 @@
-"""An edge machine in the site file: its spool, its clock, its streams and displays.
+"""An edge machine in the site file: its spool, its clock, its streams, displays, outputs,
+interlocks and control settings.
 
-Each stream's schema comes from its driver's module through `edge.drivers.table`.
+Each stream's and output's schema comes from its driver's module through `edge.drivers.table`.
 """
 
 from __future__ import annotations
@@ -9,10 +10,11 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
+from edge.config.node_control import ControlConfig, EdgeInterlockConfig
 from edge.display_text import parse_line
 from edge.drivers.hd44780 import LcdDisplay
-from edge.drivers.table import StreamConfig
-from edge.schema import Endpoints, Float, Int, StreamName, Strict
+from edge.drivers.table import OutputConfig, StreamConfig
+from edge.schema import Endpoints, Float, Int, Name, OutputBase, StreamBase, StreamName, Strict
 
 
 class SpoolConfig(Strict):
@@ -80,6 +82,11 @@ class NodeConfig(Strict):
     streams: Annotated[dict[StreamName, StreamConfig], Field(min_length=1)]
     displays: dict[StreamName, LcdDisplay] = {}
     """Character displays on this node showing its live values (edge/display.py)."""
+    outputs: dict[Name, OutputConfig] = {}
+    """Analog and digital outputs commanded through the hub (edge/outputs.py)."""
+    interlocks: dict[Name, EdgeInterlockConfig] = {}
+    """Limits on this node's own channels that block or force its outputs safe, on the edge."""
+    control: ControlConfig = ControlConfig()
 
     @model_validator(mode="after")
     def _displays_show_known_channels(self) -> NodeConfig:
@@ -97,4 +104,84 @@ class NodeConfig(Strict):
                             f"displays.{name}.lines[{i}]: stream {stream!r} has no channel"
                             f" {channel!r}"
                         )
+        return self
+
+    @model_validator(mode="after")
+    def _interlocks_watch_this_node(self) -> NodeConfig:
+        for name, lock in self.interlocks.items():
+            cfg = self.streams.get(lock.stream)
+            if cfg is None:
+                raise ValueError(
+                    f"interlocks.{name}.channel: no stream {lock.stream!r} on this node (an "
+                    f"edge interlock watches this node's own channels; streams: "
+                    f"{', '.join(self.streams)})"
+                )
+            if lock.channel_name not in [ch.name for ch in cfg.channels]:
+                raise ValueError(
+                    f"interlocks.{name}.channel: stream {lock.stream!r} has no channel "
+                    f"{lock.channel_name!r}"
+                )
+            for i, out in enumerate(lock.outputs):
+                if out not in self.outputs:
+                    known = ", ".join(self.outputs) or "none"
+                    raise ValueError(
+                        f"interlocks.{name}.outputs[{i}]: no output {out!r} on this node "
+                        f"(outputs: {known})"
+                    )
+        return self
+
+    @model_validator(mode="after")
+    def _one_output_per_pin(self) -> NodeConfig:
+        seen: dict[str, str] = {}
+        for name, out in self.outputs.items():
+            what = out.resource
+            if what in seen:
+                raise ValueError(f"outputs.{name}: drives {what}, like outputs.{seen[what]}")
+            seen[what] = name
+        return self
+
+    @model_validator(mode="after")
+    def _weld_cells_exist(self) -> NodeConfig:
+        robots: dict[str, str] = {}
+        for name, cfg in self.streams.items():
+            cell = getattr(cfg, "cell", None)
+            if cfg.driver == "weld_robot_sim" and isinstance(cell, str):
+                if cell in robots:
+                    raise ValueError(
+                        f"streams.{name}.cell: cell {cell!r} already has its robot in "
+                        f"streams.{robots[cell]}"
+                    )
+                robots[cell] = name
+        named = [
+            (f"streams.{n}.sim.cell", getattr(getattr(c, "sim", None), "cell", None))
+            for n, c in self.streams.items()
+        ] + [(f"outputs.{n}.cell", getattr(o, "cell", None)) for n, o in self.outputs.items()]
+        for where, cell in named:
+            if isinstance(cell, str) and cell not in robots:
+                known = ", ".join(robots) or "none"
+                raise ValueError(
+                    f"{where}: no weld_robot_sim stream with cell {cell!r} on this node "
+                    f"(cells: {known})"
+                )
+        return self
+
+    @model_validator(mode="after")
+    def _one_t8_is_real_or_simulated(self) -> NodeConfig:
+        kinds: dict[str, tuple[str, bool]] = {}
+        items: list[tuple[str, StreamBase | OutputBase]] = [
+            (f"streams.{n}", c) for n, c in self.streams.items()
+        ]
+        items += [(f"outputs.{n}", o) for n, o in self.outputs.items()]
+        for where, cfg in items:
+            if not cfg.driver.startswith("labjack_t8"):
+                continue
+            ident = str(getattr(cfg, "identifier", "ANY"))
+            simulated = getattr(cfg, "sim", None) is not None
+            first = kinds.setdefault(ident, (where, simulated))
+            if first[1] != simulated:
+                which = "simulated" if first[1] else "real"
+                raise ValueError(
+                    f"{where}: the T8 {ident!r} is {which} in {first[0]}: one device is either "
+                    f"simulated (sim:) everywhere or nowhere"
+                )
         return self

@@ -1,4 +1,5 @@
-"""What every driver is: the small `Driver` protocol and the `Block` of scans it returns."""
+"""What every driver is: the small `Driver` protocol and the `Block` of scans it returns; what
+every output driver is (`OutputDriver`) and a device's hardware watchdog."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ class DriverEvent:
     """Python logging level."""
     tag: str
     message: str
+    fields: tuple[tuple[str, str], ...] = ()
+    """Structured values code may react to (the event's key/value fields)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,3 +57,52 @@ class DriverHealth(Protocol):
     """Optional: a driver with this reports device health (backlogs, fault counts, ...)."""
 
     def health(self) -> dict[str, Any]: ...
+
+
+class OutputDriver(Protocol):
+    """What the output service needs from an output: write a value, read it back.
+
+    Values are the output's engineering values (volts, 0/1). Errors are DriverErrors (a
+    DeviceError keeps the vendor's code and text); the output service turns them into a
+    `device_error` refusal and reopens the device on the next command or readback poll.
+    """
+
+    @property
+    def where(self) -> str:
+        """The device and line, in words (for events and messages)."""
+        ...
+
+    def open(self) -> None: ...
+
+    def write(self, value: float) -> None: ...
+
+    def read(self) -> float:
+        """What the device holds now (raises when it cannot say)."""
+        ...
+
+    def close(self) -> None:
+        """Idempotent."""
+        ...
+
+
+class HardwareWatchdog(Protocol):
+    """A device that sets its outputs safe by itself when nobody talks to it."""
+
+    @property
+    def where(self) -> str: ...
+
+    def arm(self, timeout_s: float) -> str:
+        """Configure the watchdog with the safe values of every output on the device and enable
+        it; returns what was set, in words. Raises DriverError."""
+        ...
+
+    def feed(self) -> None:
+        """Talk to the device (its timer restarts on any communication). Raises DriverError."""
+        ...
+
+
+@runtime_checkable
+class WithWatchdog(Protocol):
+    """Optional: an output driver on a device with a hardware watchdog."""
+
+    def hardware_watchdog(self) -> HardwareWatchdog: ...

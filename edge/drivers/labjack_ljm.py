@@ -13,6 +13,7 @@ import contextlib
 import importlib
 import io
 import re
+import threading
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -215,11 +216,28 @@ class CoreTimer:
 _DIO = re.compile(r"^(FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9]))$")
 
 
+def dio_number(line: str) -> int:
+    """DIO# of a T8 digital line: FIO0-7 = 0-7, EIO0-7 = 8-15, CIO0-3 = 16-19, DIO# = #
+    (T-Series datasheet 13.0, "Digital I/O"); the bit of that line in DIO bitmask registers."""
+    m = _DIO.match(line)
+    if not m:
+        raise ValueError(f"not a T8 digital line: {line!r}")
+    base = {"FIO": 0, "EIO": 8, "CIO": 16, "DIO": 0}[line[:3]]
+    return base + int(line[3:])
+
+
 class T8Outputs:
     """The T8's DAC and DIO outputs: set a value, get the device's readback.
 
-    What the control work drives; every write is followed by a read of the same register so a
+    What the output drivers drive; every write is followed by a read of the same register so a
     command can report what the device actually holds (a DAC clamps to its -0.1..10 V span).
+    One per device in an agent (`edge.drivers.shared`), one LJM call at a time through `lock`.
+
+    LJM hands out the handle of a device that is already open in the process (LJM User's Guide
+    2.1, "Subsequent calls may return the same handle"), so on a T8 that also streams this goes
+    over the stream driver's connection. Closing a handle closes it for both: when the other
+    side closed it (a stream reconnecting, the agent stopping), the next call here reopens it
+    once (INVALID_HANDLE, DEVICE_NOT_OPEN) instead of failing.
     """
 
     DAC_MIN_V = -0.1
@@ -234,6 +252,9 @@ class T8Outputs:
     ) -> None:
         self.ljm = transport if transport is not None else load_ljm()
         self.dev = LjmDevice(self.ljm, connection, identifier, clock)
+        self.lock = threading.RLock()
+        codes = self.ljm.errorcodes
+        self._stale = {codes.INVALID_HANDLE, codes.DEVICE_NOT_OPEN}
 
     def __enter__(self) -> T8Outputs:
         self.open()
@@ -242,12 +263,31 @@ class T8Outputs:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def where(self) -> str:
+        return self.dev.where
+
     def open(self) -> None:
-        if self.dev.handle is None:
-            self.dev.open()
+        with self.lock:
+            if self.dev.handle is None:
+                self.dev.open()
 
     def close(self) -> None:
-        self.dev.close()
+        with self.lock:
+            self.dev.close()
+
+    def call(self, call: str, *args: Any) -> Any:
+        """`ljm.<call>(handle, *args)`, reopening once if the handle went stale."""
+        with self.lock:
+            self.open()
+            try:
+                return self.dev.call(call, self.dev.handle, *args)
+            except DeviceError as err:
+                if err.code not in self._stale:
+                    raise
+                self.dev.handle = None
+                self.open()
+                return self.dev.call(call, self.dev.handle, *args)
 
     def set_dac(self, dac: int, volts: float) -> float:
         """Set DAC0 or DAC1; returns the readback (V). Raises ValueError outside -0.1..10 V."""
@@ -257,22 +297,24 @@ class T8Outputs:
             raise ValueError(
                 f"DAC{dac}: {volts:g} V is outside {self.DAC_MIN_V}..{self.DAC_MAX_V} V"
             )
-        return self._write_read(f"DAC{dac}", float(volts))
+        return self.write_read(f"DAC{dac}", float(volts))
 
     def set_dio(self, line: str, state: bool) -> bool:
         """Drive a digital line (FIO#, EIO#, CIO#, DIO#) high or low; returns the readback."""
         self._check_line(line)
-        return self._write_read(line, 1.0 if state else 0.0) >= 0.5
+        return self.write_read(line, 1.0 if state else 0.0) >= 0.5
 
     def read_dio(self, line: str) -> bool:
         self._check_line(line)
-        self.open()
-        return float(self.dev.call("eReadName", self.dev.handle, line)) >= 0.5
+        return self.read(line) >= 0.5
 
-    def _write_read(self, name: str, value: float) -> float:
-        self.open()
-        self.dev.call("eWriteName", self.dev.handle, name, value)
-        return float(self.dev.call("eReadName", self.dev.handle, name))
+    def write_read(self, name: str, value: float) -> float:
+        with self.lock:
+            self.call("eWriteName", name, value)
+            return self.read(name)
+
+    def read(self, name: str) -> float:
+        return float(self.call("eReadName", name))
 
     @staticmethod
     def _check_line(line: str) -> None:

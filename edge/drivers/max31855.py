@@ -29,7 +29,7 @@ from pydantic import Field
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
 from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
-from edge.schema import Channel, Float, Int, SimFault, StreamBase, Strict
+from edge.schema import Channel, Float, Int, Name, SimFault, StreamBase, Strict
 from edge.wire import SampleStatus
 
 log = logging.getLogger("fleetdaq.drivers.max31855")
@@ -48,6 +48,10 @@ class WeldThermalModel(Strict):
     cool_s: Annotated[Float, Field(gt=0)] = 15.0
     noise_c: Annotated[Float, Field(ge=0)] = 0.3
     seed: Int | None = None
+    cell: Name | None = None
+    """The simulated weld cell whose robot heats it (a `weld_robot_sim` stream of this node):
+    it heats while the robot welds and cools otherwise, instead of the fixed layer_s/cool_s
+    cycle."""
 
 
 class ThermocoupleSim(WeldThermalModel):

@@ -14,7 +14,12 @@ it one simulated T8 runs in (real or virtual) time:
   `read_latency_ms` later; a reader that is slower than the stream finds the scans already
   there and sees `ljmScanBacklog` grow, until LJM's buffer is full (LJME_LJM_BUFFER_FULL);
 - faults from config: skipped scans (every address of the scan is LJM's dummy value -9999),
-  stream errors, and unplugging (the device power-cycles: its timer restarts on replug).
+  stream errors, and unplugging (the device power-cycles: its timer restarts on replug);
+- DAC0/DAC1 (clamped to -0.1..10 V) and DIO outputs that read back, and the hardware watchdog
+  (`sim_t8_watchdog`), fed by every command-response call (not by stream data);
+- like LJM, opening a T8 that is already open in the process returns its handle (LJM User's
+  Guide 2.1), and `t8_transport` gives every driver of an agent naming the same identifier the
+  same simulated T8, so a stream and outputs share one device.
 
 `scan_time_ns` gives the host time at which a scan was really sampled: the truth the timing
 bench measures the clock fit against.
@@ -32,11 +37,14 @@ import numpy as np
 
 from edge.drivers.labjack_ljm import T8_MAX_SAMPLE_RATE, T8_RANGES, LabJackT8Sim
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from edge.drivers.shared import SharedDevices
+from edge.drivers.sim_t8_watchdog import SimWatchdog
 from edge.drivers.simfaults import FaultSchedule
 from edge.drivers.wave_sim import WaveModel
 
 if TYPE_CHECKING:
     from edge.drivers.labjack_t8 import LabJackT8Stream
+    from edge.drivers.labjack_t8_out import LabJackT8DacOutput, LabJackT8DioOutput
     from edge.drivers.labjack_t8_poll import LabJackT8PollStream
 
 CORE_TIMER_HZ = 100_000_000
@@ -155,6 +163,7 @@ class SimT8:
         self.power_ons = 0
         self._was_unplugged = False
         self._checked_s = 0.0
+        self.watchdog = SimWatchdog()  # its settings are in flash: they outlive power cycles
         self._power_on()
 
     # -- time ------------------------------------------------------------------------------
@@ -175,6 +184,7 @@ class SimT8:
         self.registers["DAC0"] = self.registers["DAC1"] = 0.0
         self.dio_out: dict[int, int] = {}
         self.stream: _Stream | None = None
+        self.watchdog.power_on(self.on_mono)
 
     def ticks_at_mono(self, mono_ns: float) -> float:
         return self.tick0 + (mono_ns - self.on_mono) * self.ticks_per_s / 1e9
@@ -208,10 +218,30 @@ class SimT8:
             self._power_on()
         self._checked_s = t_s
 
+    def command_response(self) -> None:
+        """A command-response packet arrived: the watchdog acts if its time ran out, then its
+        timer restarts."""
+        now = self.clock.monotonic_ns()
+        self.check_watchdog(now)
+        self.watchdog.feed(now)
+
+    def check_watchdog(self, now: int | None = None) -> None:
+        """Perform the watchdog's actions if it timed out (without feeding it)."""
+        action = self.watchdog.due(self.clock.monotonic_ns() if now is None else now)
+        if action is None:
+            return
+        for dac, volts in action.dacs.items():
+            self.registers[f"DAC{dac}"] = min(max(volts, -0.1), 10.0)
+        self.dio_out.update(action.dios)
+
     # -- registers --------------------------------------------------------------------------
 
     def write(self, name: str, value: float) -> None:
-        if m := _AIN_SETTING.match(name):
+        if SimWatchdog.owns(name):
+            refused = self.watchdog.write(name, value)
+            if refused is not None:
+                raise LJMError(errorcodes.INVALID_PARAMETER, errorString=refused)
+        elif m := _AIN_SETTING.match(name):
             if m.group(2) == "RANGE" and value not in T8_RANGES:
                 raise LJMError(errorcodes.INVALID_PARAMETER, errorString=f"{name}={value:g}")
             self.registers[name] = float(value)
@@ -228,6 +258,8 @@ class SimT8:
         now = self.clock.monotonic_ns()
         if name in self.registers:
             return self.registers[name]
+        if SimWatchdog.owns(name):
+            return self.watchdog.read(name)
         if m := _AIN.match(name):
             t = np.array([(now - self.on_mono) / 1e9])
             rng = self.registers[f"AIN{m.group(1)}_RANGE"]
@@ -298,6 +330,9 @@ class SimLJM:
             if dev.epoch_mono is None:
                 dev.epoch_mono = self.clock.monotonic_ns()
             dev.check_plugged(errorcodes.DEVICE_NOT_FOUND)
+            if self._handles:  # already open in this process: LJM returns that handle
+                return min(self._handles)
+            dev.command_response()  # opening reads the device's identity
             handle = self._next_handle
             self._next_handle += 1
             self._handles.add(handle)
@@ -330,6 +365,7 @@ class SimLJM:
         self._check(handle)
         with self.device.lock:
             self.device.check_plugged(errorcodes.DEVICE_DISCONNECTED)
+            self.device.command_response()
             for name, value in zip(aNames[:numFrames], aValues[:numFrames], strict=True):
                 self.device.write(name, value)
 
@@ -340,6 +376,7 @@ class SimLJM:
         self._check(handle)
         with self.device.lock:
             self.device.check_plugged(errorcodes.DEVICE_DISCONNECTED)
+            self.device.command_response()
             return [self.device.read(name) for name in aNames[:numFrames]]
 
     def namesToAddresses(
@@ -522,7 +559,15 @@ class SimLJM:
         return math.floor(stream.start_ticks + index * stream.ticks_per_scan)
 
 
-def t8_transport(cfg: LabJackT8Stream | LabJackT8PollStream, clock: TimeSource) -> SimLJM:
-    """The `ljm` the T8 drivers get when their config has `sim:` (edge.drivers.table)."""
-    assert cfg.sim is not None
-    return SimLJM(cfg.sim, clock)
+def t8_transport(
+    cfg: LabJackT8Stream | LabJackT8PollStream | LabJackT8DacOutput | LabJackT8DioOutput,
+    clock: TimeSource,
+    shared: SharedDevices | None = None,
+) -> SimLJM:
+    """The `ljm` the T8 drivers get when their config has `sim:` (edge.drivers.table): one
+    simulated T8 per identifier in an agent (the first driver's `sim:` settings make it)."""
+    sim = cfg.sim
+    assert sim is not None
+    return (shared or SharedDevices()).get(
+        ("sim_t8", cfg.identifier), lambda: SimLJM(sim, clock), SimLJM
+    )

@@ -1,4 +1,5 @@
-"""A simulated I2C bus behind a fake `smbus2` module, with an SHT3x and an HD44780 LCD on it.
+"""A simulated I2C bus behind a fake `smbus2` module, with an SHT3x, an HD44780 LCD, PCF8574 port
+expanders and MCP4725 DACs on it.
 
 `SimSmbus2` has what the drivers use of smbus2 (`SMBus(bus)` with `i2c_rdwr`, `write_byte`,
 `read_byte`, `close`; `i2c_msg.read` / `i2c_msg.write`) and answers like Linux i2c-dev: a
@@ -9,6 +10,11 @@ FileNotFoundError. Devices model their registers and timing:
   slowly wandering air temperature and humidity; faults: NACKs, corrupted CRCs.
 - `SimLcd`: a PCF8574 port expander driving an HD44780 in 4-bit mode: nibbles latched on E's
   falling edge, instructions executed, DDRAM kept, so a test can read what the LCD shows.
+- `SimPcf8574`: the quasi-bidirectional port (NXP PCF8574 Rev. 5, 8.1-8.3): HIGH at power-on,
+  every written byte sets the port, a read returns the pin levels (pins held low outside read
+  0 whatever was written).
+- `SimMcp4725`: the DAC register and EEPROM (Microchip DS22039D, 6.1-6.2): fast writes, write
+  DAC register (and EEPROM, busy for 25 ms meanwhile, writes ignored), the 5-byte read.
 """
 
 from __future__ import annotations
@@ -23,7 +29,10 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
+from edge.drivers.mcp4725 import WRITE_DAC, WRITE_DAC_EEPROM, Mcp4725Output, Mcp4725Sim
 from edge.drivers.pacing import TimeSource
+from edge.drivers.pcf8574 import POWER_ON_PORT, Pcf8574Output, Pcf8574Sim
+from edge.drivers.shared import SharedDevices
 from edge.drivers.sht3x import (
     COMMANDS,
     MEASUREMENT_S,
@@ -275,7 +284,127 @@ class SimLcd(_Faulty):
             self.address = 0
 
 
-def sht3x_transport(cfg: Sht3xStream, clock: TimeSource) -> SimSmbus2:
+class SimPcf8574(_Faulty):
+    """A PCF8574: one quasi-bidirectional 8-bit port (datasheet 8.1-8.3)."""
+
+    def __init__(self, sim: Pcf8574Sim | None, clock: TimeSource) -> None:
+        super().__init__(sim.faults if sim else [], None, clock)
+        self.latch = POWER_ON_PORT  # 8.1: all HIGH at power-on
+        self.stuck_low = sim.stuck_low if sim else 0
+        self.writes = 0
+
+    @property
+    def pins(self) -> int:
+        """The pin levels: a latch bit at 1 is only a weak pull-up, so a pin held low reads 0."""
+        return self.latch & ~self.stuck_low & 0xFF
+
+    def write(self, data: bytes) -> None:
+        if self.faults.hits("nack", self.now_s()):
+            raise nack()
+        for value in data:  # 8.2: each byte sets P7..P0; the last one stays
+            self.latch = value
+            self.writes += 1
+
+    def read(self, length: int) -> bytes:
+        if self.faults.hits("nack", self.now_s()):
+            raise nack()
+        return bytes([self.pins]) * length  # 8.3: the pin levels, as often as clocked
+
+
+class SimMcp4725(_Faulty):
+    """An MCP4725: DAC register, EEPROM, RDY/BSY (DS22039D 6.1-6.2)."""
+
+    EEPROM_WRITE_NS = 25_000_000  # Table 1-1: 25 ms typical
+
+    def __init__(self, sim: Mcp4725Sim | None, clock: TimeSource) -> None:
+        super().__init__(sim.faults if sim else [], None, clock)
+        self.eeprom_code = sim.eeprom_code if sim else 0
+        self.eeprom_power_down = 0
+        self.code = self.eeprom_code  # power-on: the DAC register is loaded from the EEPROM
+        self.power_down = self.eeprom_power_down
+        self.por = True
+        self._busy_until = 0
+        self.eeprom_writes = 0
+        self.ignored = 0
+
+    def volts(self, vref: float) -> float:
+        """What VOUT is (0 when powered down)."""
+        return 0.0 if self.power_down else self.code * vref / 4096
+
+    def _busy(self) -> bool:
+        return self.clock.monotonic_ns() < self._busy_until
+
+    def write(self, data: bytes) -> None:
+        if self.faults.hits("nack", self.now_s()):
+            raise nack()
+        if self._busy():
+            self.ignored += 1  # Figure 6-2 note 1: writes during an EEPROM write are ignored
+            return
+        i = 0
+        while i < len(data):
+            first = data[i]
+            command = first >> 5
+            if first >> 6 == 0 and i + 1 < len(data):  # 6.1.1 fast mode: C2 C1 = 0 0
+                self.power_down = first >> 4 & 0x3
+                self.code = (first & 0x0F) << 8 | data[i + 1]
+                i += 2
+            elif command in (WRITE_DAC, WRITE_DAC_EEPROM) and i + 2 < len(data):  # 6.1.2/6.1.3
+                self.power_down = first >> 1 & 0x3
+                self.code = data[i + 1] << 4 | data[i + 2] >> 4
+                if command == WRITE_DAC_EEPROM:
+                    self.eeprom_code, self.eeprom_power_down = self.code, self.power_down
+                    self.eeprom_writes += 1
+                    self._busy_until = self.clock.monotonic_ns() + self.EEPROM_WRITE_NS
+                    return
+                i += 3
+            else:
+                return  # a reserved command, or a cut-off one: ignored (6.1)
+
+    def read(self, length: int) -> bytes:
+        if self.faults.hits("nack", self.now_s()):
+            raise nack()
+        status = (0 if self._busy() else 0x80) | (0x40 if self.por else 0) | self.power_down << 1
+        frame = bytes(
+            [
+                status,
+                self.code >> 4,
+                (self.code & 0x0F) << 4,
+                self.eeprom_power_down << 5 | self.eeprom_code >> 8,
+                self.eeprom_code & 0xFF,
+            ]
+        )
+        return (frame * (length // 5 + 1))[:length]  # Figure 6-3 note 1: bytes repeat
+
+
+def shared_bus(clock: TimeSource, shared: SharedDevices | None) -> SimSmbus2:
+    """The agent's simulated I2C buses (every simulated chip of a node on the same ones)."""
+    return (shared or SharedDevices()).get(("sim_smbus",), lambda: SimSmbus2(clock), SimSmbus2)
+
+
+def pcf8574_transport(
+    cfg: Pcf8574Output, clock: TimeSource, shared: SharedDevices | None = None
+) -> SimSmbus2:
+    """The `smbus2` a `pcf8574` output gets when its config has `sim:` (the chip is made by
+    the first of its pins; ``smbus.buses[bus][address]`` is the `SimPcf8574`)."""
+    smbus = shared_bus(clock, shared)
+    if cfg.address not in smbus.buses.get(cfg.bus, {}):
+        smbus.attach(cfg.bus, cfg.address, SimPcf8574(cfg.sim, clock))
+    return smbus
+
+
+def mcp4725_transport(
+    cfg: Mcp4725Output, clock: TimeSource, shared: SharedDevices | None = None
+) -> SimSmbus2:
+    """The `smbus2` an `mcp4725` output gets when its config has `sim:`."""
+    smbus = shared_bus(clock, shared)
+    if cfg.address not in smbus.buses.get(cfg.bus, {}):
+        smbus.attach(cfg.bus, cfg.address, SimMcp4725(cfg.sim, clock))
+    return smbus
+
+
+def sht3x_transport(
+    cfg: Sht3xStream, clock: TimeSource, shared: SharedDevices | None = None
+) -> SimSmbus2:
     """The `smbus2` `sht3x` gets when its config has `sim:`: a bus with the sensor on it."""
     assert cfg.sim is not None
     smbus = SimSmbus2(clock)
@@ -283,7 +412,9 @@ def sht3x_transport(cfg: Sht3xStream, clock: TimeSource) -> SimSmbus2:
     return smbus
 
 
-def lcd_transport(cfg: LcdDisplay, clock: TimeSource) -> SimSmbus2:
+def lcd_transport(
+    cfg: LcdDisplay, clock: TimeSource, shared: SharedDevices | None = None
+) -> SimSmbus2:
     """The `smbus2` an LCD display gets when its config has `sim:`: a bus with the LCD on it
     (``smbus.buses[bus][address]`` is the `SimLcd`, whose `lines()` tests read)."""
     smbus = SimSmbus2(clock)

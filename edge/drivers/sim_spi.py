@@ -2,16 +2,18 @@
 
 Both chips measure the same weld-cell thermocouple (`WeldThermal`): the substrate heats
 towards `peak_c` while a layer is deposited and cools towards ambient between layers (a
-first-order model), the board's cold junction sits near ambient. The chips convert on their
-own schedule (a MAX31855 about every 100 ms; a MAX31856 per its mode, filter and averaging),
-so a read returns the last finished conversion, as the hardware does. Faults from config
-set the chips' fault bits, or make MISO read all ones (no response).
+first-order model), the board's cold junction sits near ambient. The layers come from a fixed
+cycle, or from a simulated weld robot (`edge.drivers.weld_cell`) when the sim names its cell.
+The chips convert on their own schedule (a MAX31855 about every 100 ms; a MAX31856 per its
+mode, filter and averaging), so a read returns the last finished conversion, as the hardware
+does. Faults from config set the chips' fault bits, or make MISO read all ones (no response).
 """
 
 from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 
 import numpy as np
 
@@ -30,22 +32,32 @@ from edge.drivers.max31856 import (
     encode_max31856,
 )
 from edge.drivers.pacing import TimeSource
+from edge.drivers.shared import SharedDevices
 from edge.drivers.simfaults import FaultSchedule
 from edge.drivers.spibus import SpiFactory
+from edge.drivers.weld_cell import WeldCell, cell_key
 
 _STEP_S = 0.05
 
 
 class WeldThermal:
-    """Substrate temperature on an additive-manufacturing cell, layer after layer."""
+    """Substrate temperature on an additive-manufacturing cell, layer after layer.
+
+    The layers follow a fixed cycle (`layer_s` welding, `cool_s` not), or, when the sim names a
+    `cell`, whatever that cell's robot does (`welding` is then set by the chip).
+    """
 
     def __init__(self, cfg: ThermocoupleSim | Max31856Sim, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
         self._t = 0.0
         self._temp = cfg.ambient_c
+        self.robot: Callable[[float], bool] | None = None
+        """Is the robot welding at `t_s` s after the chip powered up? (a weld cell)"""
 
     def welding(self, t_s: float) -> bool:
+        if self.robot is not None:
+            return self.robot(t_s)
         return (t_s % (self.cfg.layer_s + self.cfg.cool_s)) < self.cfg.layer_s
 
     def at(self, t_s: float) -> float:
@@ -67,18 +79,24 @@ class _SimSpiChip:
     max_speed_hz = 500_000
     bits_per_word = 8
 
-    def __init__(self, sim: ThermocoupleSim | Max31856Sim, clock: TimeSource) -> None:
+    def __init__(
+        self, sim: ThermocoupleSim | Max31856Sim, clock: TimeSource, cell: WeldCell | None = None
+    ) -> None:
         self.clock = clock
         self.rng = np.random.default_rng(sim.seed)
         self.faults = FaultSchedule(sim.faults, self.rng)
         self.thermal = WeldThermal(sim, self.rng)
+        self.cell = cell
         self._epoch: int | None = None
         self.is_open = False
         self.lock = threading.Lock()
 
     def open(self, bus: int, device: int) -> None:
         if self._epoch is None:
-            self._epoch = self.clock.monotonic_ns()
+            epoch = self._epoch = self.clock.monotonic_ns()
+            cell = self.cell
+            if cell is not None:
+                self.thermal.robot = lambda t_s: cell.welding_at(epoch + t_s * 1e9)
         self.is_open = True
 
     def close(self) -> None:
@@ -124,8 +142,8 @@ _DEFAULTS = [0x00, 0x03, 0xFF, 0x7F, 0xC0, 0x7F, 0xFF, 0x80, 0x00, 0x00, 0, 0, 0
 class SimMax31856(_SimSpiChip):
     """A fake SpiDev with a MAX31856: a register file and a conversion engine."""
 
-    def __init__(self, sim: Max31856Sim, clock: TimeSource) -> None:
-        super().__init__(sim, clock)
+    def __init__(self, sim: Max31856Sim, clock: TimeSource, cell: WeldCell | None = None) -> None:
+        super().__init__(sim, clock, cell)
         self.regs = list(_DEFAULTS)
         self._next_conversion = 0.0
         self._one_shot_done: float | None = None
@@ -190,15 +208,30 @@ class SimMax31856(_SimSpiChip):
             return [0xFF] + [self.regs[(address + i) & 0x0F] for i in range(len(data) - 1)]
 
 
-def max31855_transport(cfg: Max31855Stream, clock: TimeSource) -> SpiFactory:
+def _cell(
+    sim: ThermocoupleSim | Max31856Sim, clock: TimeSource, shared: SharedDevices | None
+) -> WeldCell | None:
+    if sim.cell is None:
+        return None
+    name = sim.cell
+    return (shared or SharedDevices()).get(cell_key(name), lambda: WeldCell(name, clock), WeldCell)
+
+
+def max31855_transport(
+    cfg: Max31855Stream, clock: TimeSource, shared: SharedDevices | None = None
+) -> SpiFactory:
     """The SpiDev factory `max31855` gets when its config has `sim:` (edge.drivers.table)."""
     sim = cfg.sim
     assert sim is not None
-    return lambda: SimMax31855(sim, clock)
+    cell = _cell(sim, clock, shared)
+    return lambda: SimMax31855(sim, clock, cell)
 
 
-def max31856_transport(cfg: Max31856Stream, clock: TimeSource) -> SpiFactory:
+def max31856_transport(
+    cfg: Max31856Stream, clock: TimeSource, shared: SharedDevices | None = None
+) -> SpiFactory:
     """The SpiDev factory `max31856` gets when its config has `sim:` (edge.drivers.table)."""
     sim = cfg.sim
     assert sim is not None
-    return lambda: SimMax31856(sim, clock)
+    cell = _cell(sim, clock, shared)
+    return lambda: SimMax31856(sim, clock, cell)

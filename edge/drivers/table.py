@@ -1,4 +1,5 @@
-"""The one driver table: a config's `driver:` name -> its schema, its class, its simulator.
+"""The one driver table: a config's `driver:` name -> its schema, its class, its simulator;
+for streams (`DRIVERS`), displays (`DISPLAYS`) and outputs (`OUTPUTS`).
 
 Adding a driver is its module (schema + decoding + class) plus one row here. The schemas are
 imported with this module (the site file is validated against them); a driver module imports
@@ -18,19 +19,34 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import Field
 
-from edge.drivers.base import Driver
+from edge.drivers.base import Driver, OutputDriver
 from edge.drivers.environment_sim import EnvironmentSim, EnvironmentSimStream
 from edge.drivers.hd44780 import LcdDisplay
 from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
+from edge.drivers.labjack_t8_out import (
+    LabJackT8DacOutput,
+    LabJackT8DioOutput,
+    T8DacDriver,
+    T8DioDriver,
+)
 from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
 from edge.drivers.max31855 import Max31855, Max31855Stream
 from edge.drivers.max31856 import Max31856, Max31856Stream
+from edge.drivers.mcp4725 import Mcp4725Driver, Mcp4725Output
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from edge.drivers.pcf8574 import Pcf8574Driver, Pcf8574Output
+from edge.drivers.shared import SharedDevices
 from edge.drivers.sht3x import Sht3x, Sht3xStream
 from edge.drivers.thermocouple_sim import ThermocoupleSim, ThermocoupleSimStream
 from edge.drivers.wave_sim import WaveSim, WaveSimStream
+from edge.drivers.weld_robot import (
+    WeldRobotResume,
+    WeldRobotResumeOutput,
+    WeldRobotSim,
+    WeldRobotSimStream,
+)
 from edge.errors import DriverError
-from edge.schema import StreamBase
+from edge.schema import OutputBase, StreamBase
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,8 +57,11 @@ class DriverSpec:
     """``driver(cfg)`` opens the real device; ``driver(cfg, transport=t, clock=c)`` runs the
     same code on a simulated transport."""
     sim: str | None = None
-    """``"module:function"``: ``function(cfg, clock)`` builds the simulated transport used when
-    the config has a `sim:` block. None for drivers that are simulations themselves."""
+    """``"module:function"``: ``function(cfg, clock, shared)`` builds the simulated transport
+    used when the config has a `sim:` block. None for drivers that are simulations themselves."""
+    shared: bool = False
+    """A simulation itself that reaches the agent's shared devices: ``driver(cfg, clock=c,
+    shared=s)`` (the weld robot)."""
 
 
 DRIVERS: dict[str, DriverSpec] = {
@@ -56,6 +75,32 @@ DRIVERS: dict[str, DriverSpec] = {
     "max31855": DriverSpec(Max31855Stream, Max31855, "edge.drivers.sim_spi:max31855_transport"),
     "max31856": DriverSpec(Max31856Stream, Max31856, "edge.drivers.sim_spi:max31856_transport"),
     "sht3x": DriverSpec(Sht3xStream, Sht3x, "edge.drivers.sim_smbus:sht3x_transport"),
+    "weld_robot_sim": DriverSpec(WeldRobotSimStream, WeldRobotSim, shared=True),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class OutputSpec:
+    schema: type[OutputBase]
+    """The output's config schema (its `driver` field is a Literal of the row's name)."""
+    driver: Callable[..., OutputDriver]
+    """``driver(cfg, transport=None, clock=c, shared=s)``: the real device without a
+    transport, the same code on a simulated one with it."""
+    sim: str | None = None
+    """``"module:function"`` building the simulated transport for a config with `sim:`; None
+    for outputs that are simulations themselves."""
+
+
+OUTPUTS: dict[str, OutputSpec] = {
+    "labjack_t8_dac": OutputSpec(
+        LabJackT8DacOutput, T8DacDriver, "edge.drivers.sim_ljm:t8_transport"
+    ),
+    "labjack_t8_dio": OutputSpec(
+        LabJackT8DioOutput, T8DioDriver, "edge.drivers.sim_ljm:t8_transport"
+    ),
+    "pcf8574": OutputSpec(Pcf8574Output, Pcf8574Driver, "edge.drivers.sim_smbus:pcf8574_transport"),
+    "mcp4725": OutputSpec(Mcp4725Output, Mcp4725Driver, "edge.drivers.sim_smbus:mcp4725_transport"),
+    "weld_robot_resume": OutputSpec(WeldRobotResumeOutput, WeldRobotResume),
 }
 
 DISPLAYS: dict[str, tuple[type[LcdDisplay], str]] = {
@@ -72,16 +117,29 @@ else:
     ]
 """Any stream's config: pydantic picks the schema by its `driver:` value."""
 
+if TYPE_CHECKING:
+    OutputConfig = OutputBase
+else:
+    OutputConfig = Annotated[
+        functools.reduce(operator.or_, (spec.schema for spec in OUTPUTS.values())),
+        Field(discriminator="driver"),
+    ]
+"""Any output's config: pydantic picks the schema by its `driver:` value."""
 
-def load_sim(target: str) -> Callable[[Any, TimeSource], Any]:
+
+def load_sim(target: str) -> Callable[..., Any]:
     """Import a simulator's transport factory (``"module:function"``) now."""
     module_name, _, name = target.partition(":")
-    factory: Callable[[Any, TimeSource], Any] = getattr(importlib.import_module(module_name), name)
+    factory: Callable[..., Any] = getattr(importlib.import_module(module_name), name)
     return factory
 
 
-def create_driver(cfg: StreamBase, clock: TimeSource = SYSTEM_TIME) -> Driver:
+def create_driver(
+    cfg: StreamBase, clock: TimeSource = SYSTEM_TIME, shared: SharedDevices | None = None
+) -> Driver:
     """The driver for a stream's config, on its simulated transport when the config has `sim:`.
+
+    `shared` is the agent's shared devices (a T8 that streams and has outputs, a weld cell).
 
     Raises:
         DriverUnavailable: the device's vendor library is not installed.
@@ -90,6 +148,29 @@ def create_driver(cfg: StreamBase, clock: TimeSource = SYSTEM_TIME) -> Driver:
     spec = DRIVERS.get(cfg.driver)
     if spec is None:
         raise DriverError(f"no driver named {cfg.driver!r}")
+    shared = shared if shared is not None else SharedDevices()
     if spec.sim is not None and getattr(cfg, "sim", None) is not None:
-        return spec.driver(cfg, transport=load_sim(spec.sim)(cfg, clock), clock=clock)
+        transport = load_sim(spec.sim)(cfg, clock, shared)
+        return spec.driver(cfg, transport=transport, clock=clock)
+    if spec.shared:
+        return spec.driver(cfg, clock=clock, shared=shared)
     return spec.driver(cfg)
+
+
+def create_output(
+    cfg: OutputBase, clock: TimeSource = SYSTEM_TIME, shared: SharedDevices | None = None
+) -> OutputDriver:
+    """The driver for an output's config, on its simulated transport when the config has `sim:`.
+
+    Raises:
+        DriverUnavailable: the device's vendor library is not installed.
+        DriverError: no output driver of that name.
+    """
+    spec = OUTPUTS.get(cfg.driver)
+    if spec is None:
+        raise DriverError(f"no output driver named {cfg.driver!r}")
+    shared = shared if shared is not None else SharedDevices()
+    transport = None
+    if spec.sim is not None and getattr(cfg, "sim", None) is not None:
+        transport = load_sim(spec.sim)(cfg, clock, shared)
+    return spec.driver(cfg, transport=transport, clock=clock, shared=shared)

@@ -18,6 +18,7 @@ COMMANDS: dict[str, str] = {
     "hub": "fleetdaq.cli.hub:hub",
     "import-modaq": "fleetdaq.cli.import_modaq:import_modaq",
     "out": "fleetdaq.cli.out:out",
+    "pki": "fleetdaq.cli.pki:pki",
     "ptp": "fleetdaq.cli.ptp:ptp",
     "rec": "fleetdaq.cli.rec:rec",
     "report": "fleetdaq.cli.report:report",

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import base64
 import os
-import stat
 from pathlib import Path
 
 from edge.config.notify import SmtpConfig
+from edge.security import SecretFileError, read_private_file
 from hub.errors import SecretError
 
 
@@ -74,25 +74,9 @@ def read_password(smtp: SmtpConfig) -> Secret | None:
 def _read_file(path: Path) -> str:
     where = f"SMTP password file {path} (hub.notify.smtp.password_file)"
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    except FileNotFoundError:
-        raise SecretError(f"{where}: no such file") from None
-    except PermissionError:
-        raise SecretError(f"{where}: not readable by this user (uid {os.getuid()})") from None
-    except OSError as err:
-        raise SecretError(f"{where}: cannot open it: {err.strerror}") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise SecretError(f"{where}: not a regular file")
-        mode = stat.S_IMODE(st.st_mode)
-        if mode & 0o077:
-            raise SecretError(
-                f"{where}: group or others may access it (mode {mode:04o}); run: chmod 600 {path}"
-            )
-        data = os.read(fd, 65536)
-    finally:
-        os.close(fd)
+        data = read_private_file(path, "SMTP password file", 65536)
+    except SecretFileError as err:
+        raise SecretError(str(err).replace(f"SMTP password file {path}", where, 1)) from None
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:

@@ -81,8 +81,9 @@ def test_a_display_naming_an_unknown_channel_fails_the_config_in_one_line() -> N
         _node(lines='["{tc.nope}"]')
     message = str(err.value)
     assert "\n" not in message
-    assert message.startswith("site.yaml: nodes.am-cell: ")
-    assert "displays.lcd.lines[0]: stream 'tc' has no channel 'nope'" in message
+    assert message == (
+        "site.yaml: nodes.am-cell.displays.lcd.lines[0]: stream 'tc' has no channel 'nope'"
+    )
 
 
 def test_more_lines_than_rows_are_refused() -> None:

@@ -74,6 +74,7 @@ def test_the_demo_site_runs_the_real_drivers_on_their_simulated_transports() -> 
     assert drivers == {
         "wec/t8": ("labjack_t8", True),
         "am-cell/tc": ("max31855", True),
+        "am-cell/robot": ("weld_robot_sim", False),
         "shore/env": ("sht3x", True),
     }
     t8 = site.nodes["wec"].streams["t8"]

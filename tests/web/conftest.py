@@ -36,6 +36,7 @@ SITE = """\
 site: webtest
 hub:
   dashboard:
+    enabled: true
     listen: 127.0.0.1:0
     users_file: {users}
     open_view: {open_view}

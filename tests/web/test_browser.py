@@ -25,7 +25,7 @@ from tests.web.netns import Netns, NsProc, ensure_chromium, netns_problem
 
 OUTPUT = Path(__file__).resolve().parent / "output"
 NODES = ("wec", "am-cell", "shore")
-STREAMS = ("wec/t8", "am-cell/tc", "shore/env")
+STREAMS = ("wec/t8", "am-cell/tc", "am-cell/robot", "shore/env")
 USER, PASSWORD = "night-shift", "a long night at sea"
 LOGIN_LINE = re.compile(r"dashboard: (\S+)\s+log in as (\S+) / (\S+)")
 
@@ -240,7 +240,7 @@ site: webout
 hub:
   listen: [tcp/127.0.0.1:7447]
   recorder: {{file_duration_s: 60}}
-  dashboard: {{listen: "127.0.0.1:8080", users_file: {users}}}
+  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
 nodes:
   rig:
     streams:

@@ -13,7 +13,7 @@ SITE = """\
 site: webport
 hub:
   listen: [tcp/127.0.0.1:{router}]
-  dashboard: {{listen: "127.0.0.1:{port}"}}
+  dashboard: {{enabled: true, listen: "127.0.0.1:{port}"}}
 nodes:
   wec:
     streams:

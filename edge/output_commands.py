@@ -1,0 +1,208 @@
+"""What the edge answers to one command: decode it, answer a retry as before, check it
+(`edge.command_check`), do it on the output's device, build the `OutputReply`, raise the
+event. Called by the output service's worker thread only.
+
+A command id seen before is answered with the reply it got then (the last `REPLY_MEMORY`
+ids), so a retried command is applied at most once; the same id with another command is
+refused (not_allowed). Refusals before a command could be read (a payload that is not an
+OutputCommand, a command on another output's key) are not remembered.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from typing import Protocol
+
+from edge.cdr import decode, encode
+from edge.command_check import NodeView, Refusal, check_command
+from edge.drivers.pacing import TimeSource
+from edge.errors import DriverError, WireError
+from edge.event_publisher import EventPublisher
+from edge.interlocks import Interlocks
+from edge.messages import OutputCommand, OutputReply
+from edge.output_channel import OutputChannel, Pulse
+
+REPLY_MEMORY = 1000
+"""Command ids whose reply is kept for retries."""
+
+
+class SafeState(Protocol):
+    """Where the node's safe state is kept (the output service)."""
+
+    @property
+    def safe_state(self) -> bool: ...
+
+    @property
+    def safe_reason(self) -> str: ...
+
+
+class CommandDesk:
+    """Answers commands for the outputs in `channels`."""
+
+    def __init__(
+        self,
+        node: str,
+        channels: dict[str, OutputChannel],
+        interlocks: Interlocks,
+        events: EventPublisher,
+        clock: TimeSource,
+        state: SafeState,
+        max_command_age_s: float,
+    ) -> None:
+        self.node = node
+        self.channels = channels
+        self.interlocks = interlocks
+        self.events = events
+        self.clock = clock
+        self.state = state
+        self.max_command_age_s = max_command_age_s
+        self.malformed = 0
+        self._malformed_reported = 0
+        self._replies: OrderedDict[str, tuple[OutputCommand, bytes]] = OrderedDict()
+
+    def decide(self, output: str, data: bytes) -> bytes:
+        """The reply (encoded) to a query on the key of `output` carrying `data`."""
+        try:
+            cmd = decode(data, OutputCommand)
+        except WireError as err:
+            self.malformed += 1
+            self._report_malformed(output, str(err))
+            return encode(self.reply(None, output, Refusal("not_allowed", f"{err}")))
+        if cmd.output != output:
+            elsewhere = Refusal(
+                "not_allowed",
+                f"the command names output {cmd.output!r} but came on the key of {output!r}",
+            )
+            return self._finish(cmd, output, elsewhere, remember=False)
+        seen = self._replies.get(cmd.command_id)
+        if seen is not None:
+            first, payload = seen
+            if _same(first, cmd):
+                self._replies.move_to_end(cmd.command_id)
+                self.events.emit(
+                    logging.INFO,
+                    cmd.output,
+                    "command_retried",
+                    f"{cmd.command_id}: a retry, answered as before (not applied again)",
+                    command_id=cmd.command_id,
+                    output=cmd.output,
+                    action=cmd.action,
+                )
+                return payload
+            reused = Refusal(
+                "not_allowed", f"command id {cmd.command_id!r} was used for another command"
+            )
+            return self._finish(cmd, output, reused, remember=False)
+        ch = self.channels.get(cmd.output)
+        if ch is None:
+            known = ", ".join(self.channels) or "none"
+            unknown = Refusal(
+                "unknown_output", f"no output {cmd.output!r} on {self.node} (outputs: {known})"
+            )
+            return self._finish(cmd, output, unknown)
+        node = NodeView(self.state.safe_state, self.state.safe_reason, self.max_command_age_s)
+        view = ch.view(self.interlocks.active_for(ch.name))
+        refusal = check_command(cmd, view, node, self.clock.time_ns(), ch.now_s())
+        if refusal is None:
+            refusal = self._apply(cmd, ch)
+        if refusal is None:
+            ch.commands += 1
+        else:
+            ch.refused += 1
+        return self._finish(cmd, output, refusal)
+
+    def _apply(self, cmd: OutputCommand, ch: OutputChannel) -> Refusal | None:
+        """Do what an allowed command says; a device's refusal is the reply."""
+        action = cmd.action
+        try:
+            if action == "read":
+                ch.read_back()
+                if ch.cfg.readback == "device" and ch.fault:
+                    return Refusal("device_error", ch.fault)
+            elif action == "arm":
+                ch.armed = True
+            elif action == "disarm":
+                ch.armed = False
+            elif action == "set":
+                ch.pulse = None
+                ch.write(cmd.value)
+            elif action == "pulse":
+                back_to = ch.pulse.back_to if ch.pulse is not None else ch.value
+                ch.pulse = None
+                ch.write(cmd.value)
+                ch.pulse = Pulse(ch.now_s() + cmd.pulse_s, back_to, cmd.command_id)
+        except DriverError as err:
+            return Refusal("device_error", str(err))
+        return None
+
+    def _finish(
+        self, cmd: OutputCommand, output: str, refusal: Refusal | None, remember: bool = True
+    ) -> bytes:
+        reply = self.reply(cmd, output, refusal)
+        payload = encode(reply)
+        if remember:
+            self._replies[cmd.command_id] = (cmd, payload)
+            while len(self._replies) > REPLY_MEMORY:
+                self._replies.popitem(last=False)
+        applied = refusal is None
+        level = logging.INFO if applied else logging.WARNING
+        if cmd.action == "read":
+            level = logging.DEBUG
+        what = f"applied, reads back {reply.readback:g}" if applied else f"refused: {reply.refusal}"
+        self.events.emit(
+            level,
+            output,
+            "command_applied" if applied else "command_refused",
+            f"{cmd.action} {cmd.value:g} from {cmd.sender} {cmd.who} ({cmd.reason}): {what}"
+            + ("" if applied else f" ({reply.message})"),
+            command_id=cmd.command_id,
+            output=output,
+            action=cmd.action,
+            value=f"{cmd.value:g}",
+            sender=cmd.sender,
+            who=cmd.who,
+            refusal=reply.refusal,
+            readback=f"{reply.readback:g}",
+        )
+        return payload
+
+    def reply(self, cmd: OutputCommand | None, output: str, refusal: Refusal | None) -> OutputReply:
+        ch = self.channels.get(output)
+        return OutputReply(
+            command_id=cmd.command_id if cmd is not None else "",
+            output=output,
+            action=cmd.action if cmd is not None else "",
+            applied=refusal is None,
+            refusal=refusal.reason if refusal is not None else "",
+            message=refusal.message if refusal is not None else "",
+            requested=cmd.value if cmd is not None else math.nan,
+            readback=ch.readback if ch is not None else math.nan,
+            readback_ns=ch.readback_ns if ch is not None else 0,
+            readback_source=ch.source if ch is not None else "",
+            armed=ch.armed if ch is not None else False,
+            safe_state=self.state.safe_state,
+            interlocks=self.interlocks.active_for(output) if ch is not None else (),
+            replied_ns=self.clock.time_ns(),
+        )
+
+    def _report_malformed(self, output: str, why: str) -> None:
+        n = self.malformed
+        if n == 1 or n >= self._malformed_reported * 10:
+            self._malformed_reported = n
+            self.events.emit(
+                logging.WARNING,
+                "outputs",
+                "malformed_command",
+                f"refused a payload on out/{output} that is not an OutputCommand ({why}); "
+                f"{n} so far",
+                output=output,
+                count=n,
+            )
+
+
+def _same(a: OutputCommand, b: OutputCommand) -> bool:
+    """The same command (a retry may be stamped again: its time and max age do not count)."""
+    keys = ("output", "action", "value", "pulse_s", "sender", "who", "reason")
+    return all(getattr(a, k) == getattr(b, k) for k in keys)

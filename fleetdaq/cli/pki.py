@@ -1,0 +1,121 @@
+"""``fleetdaq pki``: the site's certificates — `init` (the site CA and the hub's router
+certificate), `issue NODE` and `issue --operator NAME --role view|control`, `list`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from fleetdaq.cli.common import fail, load_site
+
+
+def _dir_option(f: click.decorators.FC) -> click.decorators.FC:
+    return click.option(
+        "--dir",
+        "folder",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=Path("pki"),
+        show_default=True,
+        help="The PKI folder (keep it, and ca.key above all, on the control machine).",
+    )(f)
+
+
+@click.group()
+def pki() -> None:
+    """The site's certificate authority and certificates (mutual TLS on every link)."""
+
+
+@pki.command()
+@_dir_option
+@click.option("--config", "config", type=click.Path(), help="Site file (its site name).")
+@click.option("--site", default=None, help="Site name, when no --config is given.")
+@click.option(
+    "--hub-name",
+    "hub_names",
+    multiple=True,
+    help="A host name or address edges use to reach the hub (repeat; default: this machine's "
+    "name, localhost, 127.0.0.1).",
+)
+@click.option("--days", default=3650, show_default=True, help="The CA's validity.")
+@click.option("--force", is_flag=True, help="Replace an existing CA (every certificate with it).")
+def init(
+    folder: Path,
+    config: str | None,
+    site: str | None,
+    hub_names: tuple[str, ...],
+    days: int,
+    force: bool,
+) -> None:
+    """Create the site CA and the hub's router certificate."""
+    from edge.security import SecretFileError
+    from fleetdaq.pki import PkiError, init
+
+    if config:
+        site = load_site(config).site
+    if not site:
+        fail("pki init: give --config SITE_FILE or --site NAME", 2)
+    try:
+        made = init(folder, site, list(hub_names) or None, days, force)
+    except (PkiError, SecretFileError) as err:
+        fail(f"pki init: {err}", 2)
+    for m in made:
+        click.echo(f"{m.cert}  ({m.cn}; key {m.key}, mode 0600)")
+    click.echo(f"Next: fleetdaq pki issue NODE --dir {folder}, for every node of the site.")
+
+
+@pki.command()
+@_dir_option
+@click.argument("name")
+@click.option("--operator", is_flag=True, help="NAME is a person using the CLI, not a node.")
+@click.option(
+    "--role",
+    type=click.Choice(["view", "control"]),
+    default="view",
+    show_default=True,
+    help="An operator's role: view (status, lists) or control (actions, outputs).",
+)
+@click.option("--config", "config", type=click.Path(), help="Site file: the node must be in it.")
+@click.option("--days", default=825, show_default=True)
+@click.option("--force", is_flag=True, help="Replace an existing certificate and key.")
+def issue(
+    folder: Path,
+    name: str,
+    operator: bool,
+    role: str,
+    config: str | None,
+    days: int,
+    force: bool,
+) -> None:
+    """Issue a certificate for a node (CN = its name) or an operator."""
+    from edge.security import SecretFileError
+    from fleetdaq.pki import PkiError, issue_node, issue_operator
+
+    try:
+        if operator:
+            made = issue_operator(folder, name, role, days, force)  # type: ignore[arg-type]
+        else:
+            if config and name not in load_site(config).nodes:
+                fail(f"pki issue: the site file {config} has no node {name!r}", 2)
+            made = issue_node(folder, name, days, force)
+    except (PkiError, SecretFileError) as err:
+        fail(f"pki issue: {err}", 2)
+    click.echo(f"{made.cert}  (CN {made.cn}, until {made.not_after:%Y-%m-%d}; key {made.key})")
+    if operator:
+        click.echo(
+            f"Add to the site file: security: {{operators: {{{name}: {role}}}}}; restart the hub."
+        )
+
+
+@pki.command("list")
+@_dir_option
+def list_certs(folder: Path) -> None:
+    """Every certificate in the folder: CN, role, expiry, whether the site CA issued it."""
+    from fleetdaq.pki import listing
+
+    if not (folder / "ca.crt").exists():
+        fail(f"pki list: no site CA in {folder}", 2)
+    for c in listing(folder):
+        mark = "" if c.issued_by_site_ca else "  NOT ISSUED BY THIS CA"
+        role = f" role={c.role}" if c.role else ""
+        click.echo(f"{c.cn:30} until {c.not_after:%Y-%m-%d}{role}  {c.path}{mark}")

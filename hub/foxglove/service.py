@@ -1,0 +1,364 @@
+"""The Foxglove live view as a hub service: a Foxglove WebSocket server (foxglove-sdk) that
+Foxglove and Lichtblick connect to ("Open connection" -> "Foxglove WebSocket" ->
+``ws://HUB:8765``), with these channels (JSON, with a JSON Schema each):
+
+- ``/<node>/<stream>`` for every stream of the site: decimated on the hub to at most 200
+  messages a second, each channel's mean, min and max per interval (`hub.foxglove.decimate`,
+  `hub.foxglove.messages.StreamMessages`); log time and ``header.stamp`` = acquisition time;
+- ``/events``: every event; ``/log``: the same as ``foxglove.Log`` for the Log panel;
+- ``/alarms``: every alarm transition; ``/alarms/current``: every alarm's state, once a second;
+- ``/diagnostics``: ``diagnostic_msgs/msg/DiagnosticArray`` once a second
+  (`hub.foxglove.diagnostics`).
+
+Nothing is computed for a channel nobody subscribes to (the SDK says whether a channel has a
+subscriber): without a Foxglove client the service costs a queue hand-off per batch. Batches
+come from the batch feed on this service's own thread and bounded queue; events from the event
+bus on its own thread; the diagnostics and the server's clock (the "time" capability, so a
+viewer's clock is the hub's, whatever its own) from a ticker thread. A slow viewer never holds
+anything up: the SDK drops the oldest messages queued for it. Whatever a client sends is the
+SDK's to check (it answers a bad message with a status message and goes on).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Final, cast
+
+import numpy as np
+
+from edge.config.site import SiteConfig
+from edge.messages import Event
+from edge.wire import plausible_time
+from hub.batch_feed import BatchFeed, FedBatch
+from hub.bus import EventBus
+from hub.errors import HubError
+from hub.foxglove import diagnostics
+from hub.foxglove.decimate import INTERVAL_NS, Decimator
+from hub.foxglove.messages import (
+    ALARM_TABLE_SCHEMA,
+    ALARM_TRANSITION_SCHEMA,
+    EVENT_SCHEMA,
+    LOG_SCHEMA,
+    StreamMessages,
+    alarm_table,
+    alarm_transition,
+    dumps,
+    event_message,
+    log_message,
+)
+from hub.read_model import HubView
+
+if TYPE_CHECKING:  # imported when the service starts: only a hub that uses it needs the SDK
+    from foxglove import Channel, Context
+    from foxglove.websocket import ServerListener, WebSocketServer
+
+log = logging.getLogger("fleetdaq.foxglove")
+
+TICK_S: Final = 0.05
+"""The server's time goes to the clients 20 times a second (while anyone subscribes)."""
+STATE_PERIOD_S: Final = 1.0
+"""Diagnostics and the alarm table: once a second (the ticker's pace when nobody watches)."""
+FEED_QUEUE_BYTES: Final = 32 << 20
+
+FIXED_TOPICS: Final = {
+    "/events": EVENT_SCHEMA,
+    "/log": LOG_SCHEMA,
+    "/alarms": ALARM_TRANSITION_SCHEMA,
+    "/alarms/current": ALARM_TABLE_SCHEMA,
+    "/diagnostics": diagnostics.SCHEMA,
+}
+
+
+def split_listen(listen: str) -> tuple[str, int]:
+    """``127.0.0.1:8765`` / ``[::1]:8765`` (checked by the config) -> host, port."""
+    host, _, port = listen.rpartition(":")
+    return host.removeprefix("[").removesuffix("]"), int(port)
+
+
+@dataclass(slots=True)
+class _Stream:
+    names: tuple[str, ...]
+    messages: StreamMessages
+    decimator: Decimator
+    channel: Channel | None = None
+
+
+class FoxgloveLive:
+    """The hub's Foxglove WebSocket server (a service: start, stop, failure)."""
+
+    name = "foxglove-live"
+
+    def __init__(
+        self, site: SiteConfig, feed: BatchFeed, bus: EventBus, snapshot: Callable[[], HubView]
+    ) -> None:
+        self.site = site
+        self.listen = site.hub.dashboard.foxglove.listen
+        self.snapshot = snapshot
+        self._configured = diagnostics.configured_streams(site)
+        self._streams: dict[tuple[str, str], _Stream] = {}
+        for node, cfg in site.nodes.items():
+            for stream, s in cfg.streams.items():
+                names = tuple(c.name for c in s.channels)
+                units = tuple(c.unit for c in s.channels)
+                self._streams[(node, stream)] = _Stream(
+                    names,
+                    StreamMessages(node, stream, names, units, INTERVAL_NS),
+                    Decimator(len(names)),
+                )
+        self._channels: dict[str, Channel] = {}
+        self._server: WebSocketServer | None = None
+        self._context: Context | None = None
+        self._subscriptions = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._running = False
+        self._ticker = threading.Thread(target=self._tick, name="foxglove-tick", daemon=True)
+        self.counts = {"messages": 0, "batches": 0, "implausible": 0, "mismatched": 0, "errors": 0}
+        self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=FEED_QUEUE_BYTES)
+        bus.subscribe(self.name, self._on_event)
+
+    @classmethod
+    def if_enabled(
+        cls, site: SiteConfig, feed: BatchFeed, bus: EventBus, snapshot: Callable[[], HubView]
+    ) -> list[FoxgloveLive]:
+        """The service when the site file enables it (``hub.dashboard.foxglove.enabled``)."""
+        return [cls(site, feed, bus, snapshot)] if site.hub.dashboard.foxglove.enabled else []
+
+    # --- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        try:
+            import foxglove
+            from foxglove.websocket import Capability
+        except ImportError as err:
+            raise HubError(
+                "the Foxglove live view needs foxglove-sdk (pip install 'fleetdaq[hub]'); "
+                "or set hub.dashboard.foxglove.enabled: false"
+            ) from err
+        _route_sdk_logs()
+        # Held for the service's life: the channels and the server are bound through it, and
+        # the SDK lets go of them (nothing advertised) once the Python object is gone.
+        self._context = context = foxglove.Context()
+        # Every channel exists before the server: a client sees them all in its first advertise.
+        for st in self._streams.values():
+            st.channel = _channel(context, st.messages.topic, st.messages.schema)
+        for topic, schema in FIXED_TOPICS.items():
+            self._channels[topic] = _channel(context, topic, schema)
+        host, port = split_listen(self.listen)
+        try:
+            self._server = foxglove.start_server(
+                name=f"fleetdaq hub, site {self.site.site}",
+                host=host,
+                port=port,
+                capabilities=[Capability.Time],
+                server_listener=cast("ServerListener", _Listener(self)),
+                context=context,
+            )
+        except RuntimeError as err:
+            self._close_channels()
+            reason = str(err).removeprefix("FoxgloveError: ")
+            raise HubError(
+                f"the Foxglove live view cannot listen on {self.listen}: {reason} "
+                "(site file: hub.dashboard.foxglove.listen, or enabled: false)"
+            ) from err
+        self._running = True
+        self._consumer.start()
+        self._ticker.start()
+        log.info("Foxglove live view on ws://%s", self.listen)
+
+    def stop(self) -> None:
+        if self._running:
+            log.info(
+                "Foxglove live view stopping: %s",
+                ", ".join(f"{k} {v}" for k, v in self.counts.items()),
+            )
+        self._running = False
+        self._stop.set()
+        if self._ticker.is_alive():
+            self._ticker.join(10)
+        self._consumer.stop()
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+        self._close_channels()
+        self._context = None
+
+    def failure(self) -> str | None:
+        if not self._running:
+            return None
+        if not self._ticker.is_alive():
+            return "its ticker thread (diagnostics, time) died"
+        if not self._consumer.alive:
+            return "its batch-feed thread died"
+        return None
+
+    def _close_channels(self) -> None:
+        for ch in [*(s.channel for s in self._streams.values()), *self._channels.values()]:
+            if ch is not None:
+                ch.close()
+        for st in self._streams.values():
+            st.channel = None
+        self._channels = {}
+
+    def _subscribed(self, delta: int) -> None:
+        with self._lock:
+            self._subscriptions = max(0, self._subscriptions + delta)
+
+    # --- streams (the batch feed's thread) -----------------------------------------------------
+
+    def _on_batch(self, b: FedBatch) -> None:
+        st = self._streams.get((b.node, b.stream))
+        if st is None or st.channel is None:
+            return
+        if not st.channel.has_sinks():
+            st.decimator.reset()  # nobody watches: no work, nothing carried over
+            return
+        if b.late:
+            return  # a replay fills a hole in the recording; live, that time has passed
+        h = b.header
+        if h.channel_names != st.names:
+            self.counts["mismatched"] += 1
+            return
+        now = time.time_ns()
+        last_ns = h.first_sample_time_ns + h.scan_count * h.sample_period_ns
+        if not (plausible_time(h.first_sample_time_ns, now) and plausible_time(int(last_ns), now)):
+            self.counts["implausible"] += 1  # an edge whose clock was never set, or a lie
+            return
+        n = h.samples
+        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
+        rows = st.decimator.add(
+            h.first_sample_time_ns, h.sample_period_ns, data.reshape(h.scan_count, -1)
+        )
+        out = st.messages.encode(rows)
+        for t, msg in out:
+            st.channel.log(msg, log_time=t)
+        self.counts["batches"] += 1
+        self.counts["messages"] += len(out)
+
+    # --- events (the event bus's thread) -------------------------------------------------------
+
+    def _on_event(self, e: Event) -> None:
+        if not self._running:
+            return
+        now = time.time_ns()
+        t = e.time_ns if plausible_time(e.time_ns, now) else now
+        for topic, build in (("/events", event_message), ("/log", log_message)):
+            ch = self._channels.get(topic)
+            if ch is not None and ch.has_sinks():
+                ch.log(dumps(build(e, t)), log_time=t)
+        ch = self._channels.get("/alarms")
+        alarm = e.source == "alarms" and e.tag.startswith("alarm_")
+        if alarm and ch is not None and ch.has_sinks():
+            name = e.get("alarm")
+            view = next((a for a in self.snapshot().alarms if a.name == name), None)
+            ch.log(dumps(alarm_transition(e, t, view)), log_time=t)
+
+    # --- diagnostics, alarm table, time (the ticker's thread) ----------------------------------
+
+    def _tick(self) -> None:
+        next_state = time.monotonic() + STATE_PERIOD_S
+        while not self._stop.wait(TICK_S if self._subscriptions > 0 else STATE_PERIOD_S):
+            try:
+                server = self._server
+                if server is not None and self._subscriptions > 0:
+                    server.broadcast_time(time.time_ns())
+                now = time.monotonic()
+                if now >= next_state:
+                    next_state = now + STATE_PERIOD_S
+                    self._publish_state()
+            except Exception:
+                self.counts["errors"] += 1
+                if self.counts["errors"] <= 10 or self.counts["errors"] % 1000 == 0:
+                    log.exception("Foxglove live view: tick failed")
+
+    def _publish_state(self) -> None:
+        diag = self._channels.get("/diagnostics")
+        table = self._channels.get("/alarms/current")
+        diag = diag if diag is not None and diag.has_sinks() else None
+        table = table if table is not None and table.has_sinks() else None
+        if diag is None and table is None:
+            return
+        view = self.snapshot()
+        now = time.time_ns()
+        if diag is not None:
+            diag.log(dumps(diagnostics.diagnostic_array(view, self._configured, now)), log_time=now)
+        if table is not None:
+            in_alarm = sum(a.state in diagnostics.IN_ALARM for a in view.alarms)
+            table.log(dumps(alarm_table(view.alarms, now, in_alarm)), log_time=now)
+
+
+class _Listener:
+    """The SDK calls these (on its own threads) as clients subscribe and go."""
+
+    def __init__(self, live: FoxgloveLive) -> None:
+        self.live = live
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.live._subscribed(+1)
+        log.debug("Foxglove client %s subscribed to %s", client.id, channel.topic)
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        self.live._subscribed(-1)
+        log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
+
+
+def _channel(context: Context, topic: str, schema: dict[str, Any]) -> Channel:
+    from foxglove import Channel, Schema
+
+    return Channel(
+        topic,
+        schema=Schema(name=schema["title"], encoding="jsonschema", data=dumps(schema)),
+        message_encoding="json",
+        context=context,
+    )
+
+
+# --- the SDK's own log -------------------------------------------------------------------------
+
+_routed: list[bool] = []
+
+
+class _SdkLog(logging.Handler):
+    """The SDK's log records (it logs every bad message a client sends) into ours, at most
+    `burst` a minute, with a count of what was left out: a client sending garbage in a loop
+    must not fill the hub's log."""
+
+    def __init__(self, burst: int = 20, window_s: float = 60.0) -> None:
+        super().__init__()
+        self.burst = burst
+        self.window_s = window_s
+        self._window_start = 0.0
+        self._in_window = 0
+        self._suppressed = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        now = time.monotonic()
+        if now - self._window_start > self.window_s:
+            self._window_start, self._in_window = now, 0
+        self._in_window += 1
+        if self._in_window > self.burst:
+            self._suppressed += 1
+            return
+        note = ""
+        if self._suppressed:
+            note = f" ({self._suppressed} more SDK messages left out before this one)"
+            self._suppressed = 0
+        log.log(record.levelno, "foxglove-sdk %s: %s%s", record.name, record.getMessage(), note)
+
+
+def _route_sdk_logs() -> None:
+    """Once per process (the SDK's logging is global)."""
+    import foxglove
+
+    if _routed:
+        return
+    _routed.append(True)
+    sdk = logging.getLogger("foxglove")
+    sdk.setLevel(logging.WARNING)
+    sdk.propagate = False
+    sdk.addHandler(_SdkLog())
+    foxglove.set_log_level(logging.WARNING)

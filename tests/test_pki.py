@@ -1,0 +1,109 @@
+"""`fleetdaq pki`: a site CA, the hub's router certificate, node and operator certificates — keys
+0600, never overwritten without --force, each checked with `cryptography` against the CA."""
+
+from __future__ import annotations
+
+import ipaddress
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from edge.security import SecretFileError, check_private_file
+from tests.procs import REPO
+
+
+def pki(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "pki", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def cert(path: Path) -> x509.Certificate:
+    return x509.load_pem_x509_certificate(path.read_bytes())
+
+
+def cn(c: x509.Certificate) -> str:
+    return str(c.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value)
+
+
+def test_init_and_issue_make_a_working_chain(tmp_path: Path):
+    d = tmp_path / "pki"
+    r = pki("init", "--dir", str(d), "--site", "buoy", "--hub-name", "hub.buoy.lan",
+            "--hub-name", "10.0.0.2")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert pki("issue", "wec", "--dir", str(d)).returncode == 0
+    r = pki("issue", "ann", "--operator", "--role", "control", "--dir", str(d))
+    assert r.returncode == 0, r.stderr
+    assert "security: {operators: {ann: control}}" in r.stdout
+
+    ca = cert(d / "ca.crt")
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    for path, name in (
+        (d / "hub.crt", "hub"),
+        (d / "nodes" / "wec.crt", "wec"),
+        (d / "operators" / "ann.crt", "operator:ann"),
+    ):
+        c = cert(path)
+        c.verify_directly_issued_by(ca)  # raises when the CA did not sign it
+        assert cn(c) == name
+        assert not c.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+        usage = c.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+        assert ExtendedKeyUsageOID.CLIENT_AUTH in usage
+        key = path.with_suffix(".key")
+        assert stat.S_IMODE(key.stat().st_mode) == 0o600
+        check_private_file(key)
+    hub = cert(d / "hub.crt")
+    san = hub.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.DNSName) == ["hub.buoy.lan"]
+    assert san.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("10.0.0.2")]
+    ou = cert(d / "operators" / "ann.crt").subject.get_attributes_for_oid(
+        NameOID.ORGANIZATIONAL_UNIT_NAME
+    )
+    assert ou[0].value == "role=control"
+    listing = pki("list", "--dir", str(d)).stdout
+    assert "operator:ann" in listing
+    assert "NOT ISSUED" not in listing
+
+
+def test_nothing_is_overwritten_without_force_and_bad_names_are_refused(tmp_path: Path):
+    d = tmp_path / "pki"
+    assert pki("init", "--dir", str(d), "--site", "buoy").returncode == 0
+    assert pki("issue", "wec", "--dir", str(d)).returncode == 0
+    before = (d / "nodes" / "wec.key").read_bytes()
+    for args in (("init", "--site", "buoy"), ("issue", "wec")):
+        r = pki(*args, "--dir", str(d))
+        assert r.returncode == 2
+        assert "exists" in r.stderr
+        assert "--force" in r.stderr
+        assert "Traceback" not in r.stderr
+    assert (d / "nodes" / "wec.key").read_bytes() == before
+    assert pki("issue", "wec", "--dir", str(d), "--force").returncode == 0
+    assert (d / "nodes" / "wec.key").read_bytes() != before
+    for bad in ("Wec", "hub", "a/b", ""):
+        r = pki("issue", bad, "--dir", str(d))
+        assert r.returncode == 2, bad
+        assert len(r.stderr.strip().splitlines()) == 1
+    r = pki("issue", "wec", "--dir", str(tmp_path / "empty"))
+    assert r.returncode == 2
+    assert "no site CA" in r.stderr
+
+
+def test_a_ca_key_readable_by_others_is_refused(tmp_path: Path):
+    d = tmp_path / "pki"
+    assert pki("init", "--dir", str(d), "--site", "buoy").returncode == 0
+    (d / "ca.key").chmod(0o644)
+    r = pki("issue", "wec", "--dir", str(d))
+    assert r.returncode == 2
+    assert "chmod 600" in r.stderr
+    with pytest.raises(SecretFileError, match="group or others"):
+        check_private_file(d / "ca.key")
