@@ -38,6 +38,7 @@ bench: $(STAMP)
 	$(PY) bench/alarms.py
 	$(PY) bench/control.py
 	$(PY) bench/foxglove.py
+	$(PY) bench/dashboard.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import secrets
 import signal
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from hub.event_log import format_event
 from hub.layer_waits import LayerWaits
 from hub.read_model import HubView
 from hub.runtime import HubRuntime
+from hub.web.users import UsersFileError, hash_password, read_users, write_users
 
 log = logging.getLogger("fleetdaq.demo")
 
@@ -158,6 +160,34 @@ def _stop_edges(procs: dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]]) -> 
     return failed
 
 
+DEMO_USER = "demo"
+
+
+def demo_login(users_file: Path) -> str:
+    """Give the dashboard user `demo` a new random password in `users_file` (other users in it
+    are kept); returns the password."""
+    password = secrets.token_urlsafe(12)
+    try:
+        users = read_users(users_file)
+    except UsersFileError:
+        users = {}  # the demo's own file, damaged: start it again
+    users[DEMO_USER] = hash_password(password)
+    write_users(users_file, users)
+    return password
+
+
+def with_dashboard(site: SiteConfig, users_file: Path, listen: str | None) -> SiteConfig:
+    """The site with the demo's users file, and `listen` ("off": no dashboard) if given."""
+    dash = site.hub.dashboard
+    update: dict[str, Any] = {"users_file": str(users_file)}
+    if listen == "off":
+        update["enabled"] = False
+    elif listen:
+        update["listen"] = listen
+    hub = site.hub.model_copy(update={"dashboard": dash.model_copy(update=update)})
+    return site.model_copy(update={"hub": hub})
+
+
 def run_demo(
     site: SiteConfig,
     config: Path,
@@ -165,12 +195,18 @@ def run_demo(
     duration: float | None,
     stop: threading.Event,
     listen: str | None,
+    dashboard: str | None = None,
 ) -> tuple[int, dict[str, Any]]:
-    """Run until `duration` elapses or `stop` is set; return (exit code, summary)."""
+    """Run until `duration` elapses or `stop` is set; return (exit code, summary).
+
+    `dashboard`: the dashboard's ADDRESS:PORT instead of the site file's, or "off"."""
     console = Console(stderr=True)
     if not console.is_terminal:
         console = Console(stderr=True, width=120)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    users_file = data_dir / "dashboard-users"
+    site = with_dashboard(site, users_file, dashboard)
+    password = demo_login(users_file) if site.hub.dashboard.enabled else ""
     h = HubRuntime(site, data_dir, [listen] if listen else None)
     try:
         h.start()
@@ -179,7 +215,17 @@ def run_demo(
         return 1, {"error": str(err)}
     except HubError as err:
         console.print(f"[red]{err}[/red]")
+        if "dashboard" in str(err):
+            console.print("Try --dashboard 127.0.0.1:8081 (or --dashboard off).")
         return 2, {"error": str(err)}
+    web = h.dashboard
+    if web is not None:
+        console.print(
+            f"dashboard: [bold]{web.url}[/bold]  log in as [bold]{DEMO_USER}[/bold] / "
+            f"[bold]{password}[/bold]  (users file {users_file})",
+            highlight=False,
+            soft_wrap=True,
+        )
     endpoint = listen or None
     session = h.recorder.session
     assert session is not None
@@ -214,6 +260,9 @@ def run_demo(
     summary = h.summary()
     summary["duration_s"] = round(time.monotonic() - t0, 3)
     summary["edge_failures"] = failed
+    summary["dashboard"] = (
+        {"url": web.url, "user": DEMO_USER, "users_file": str(users_file)} if web else None
+    )
     layers.update()
     if layers.robots:
         summary["layer_waits"] = layers.summary()

@@ -135,6 +135,18 @@ class LivePlots:
 
         Raises KeyError for an unknown stream or channel, ValueError for a bad width or span.
         """
+        return self.frame_arrays(stream, channels, width, span_s, end_ns).to_dict()
+
+    def frame_arrays(
+        self,
+        stream: str,
+        channels: list[str] | None,
+        width: int,
+        span_s: float,
+        end_ns: int | None = None,
+    ) -> Frame:
+        """`frame` as numpy columns (NaN where no sample fell): what the dashboard's WebSocket
+        sends as float32, without a Python object per value."""
         if not 1 <= width <= 10_000:
             raise ValueError("width must be 1 to 10000 pixels")
         if not 0 < span_s <= self.window_s:
@@ -170,19 +182,48 @@ class LivePlots:
         out_hi = np.full((width, len(cols)), np.nan)
         out_lo[px] = plo
         out_hi[px] = phi
+        return Frame(
+            stream=stream,
+            start_ns=int(start),
+            end_ns=int(end),
+            width=width,
+            latest_ns=latest_ns,
+            channels=tuple(ring.channels[c] for c in cols),
+            units=tuple(ring.units[c] for c in cols),
+            lo=out_lo,
+            hi=out_hi,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One plot frame: `width` pixel columns of (min, max) per channel."""
+
+    stream: str
+    start_ns: int
+    end_ns: int
+    width: int
+    latest_ns: int
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    lo: npt.NDArray[np.float64]
+    """(width, channels); NaN where no sample fell."""
+    hi: npt.NDArray[np.float64]
+
+    def to_dict(self) -> dict[str, Any]:
         return {
-            "stream": stream,
-            "start_ns": int(start),
-            "end_ns": int(end),
-            "width": width,
-            "latest_ns": latest_ns,
+            "stream": self.stream,
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
+            "width": self.width,
+            "latest_ns": self.latest_ns,
             "channels": {
-                ring.channels[c]: {
-                    "unit": ring.units[c],
-                    "min": _listed(out_lo[:, i]),
-                    "max": _listed(out_hi[:, i]),
+                name: {
+                    "unit": self.units[i],
+                    "min": _listed(self.lo[:, i]),
+                    "max": _listed(self.hi[:, i]),
                 }
-                for i, c in enumerate(cols)
+                for i, name in enumerate(self.channels)
             },
         }
 

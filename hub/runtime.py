@@ -10,9 +10,10 @@ Adding a service is one line in `HubRuntime.__init__`'s list. Services share:
 
 The order matters: the router first (everything talks through it), the bus and events.log next
 (so every later service's events are kept), the recorder before the node watch (health goes
-into the recording), the heartbeat and the status request last (edges and operators see a hub
-only once it records). Stopping runs the other way, so the recorder drains what reached it
-after the node watch has stopped listening.
+into the recording), the heartbeat and the status request next (edges and operators see a hub
+only once it records), the dashboard last (its page shows a hub that runs whole, and it is
+the first to stop). Stopping runs the other way, so the recorder drains what reached it after
+the node watch has stopped listening.
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ from hub.rules import RuleEngine
 from hub.services import ServiceStack
 from hub.snapshots import SnapshotBuffer
 from hub.status import StatusService
+from hub.web.parts import HubParts
+from hub.web.service import WebService
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -148,6 +151,21 @@ class HubRuntime:
         )
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
         self.status = StatusService(self.router, self.keys, self.snapshot)
+        self.dashboard = (
+            WebService(
+                site,
+                HubParts(
+                    snapshot=self.snapshot,
+                    alarm_requests=self.alarm_requests,
+                    commands=self.commands,
+                    recorder_requests=self.recorder_requests,
+                    live_plots=self.live_plots,
+                    bus=self.bus,
+                ),
+            )
+            if site.hub.dashboard.enabled
+            else None
+        )
         self.services = ServiceStack(
             [
                 self.router,
@@ -168,6 +186,7 @@ class HubRuntime:
                 *FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot),
                 self.heartbeat,
                 self.status,
+                *([self.dashboard] if self.dashboard is not None else []),
             ]
         )
         self.started = False

@@ -31,6 +31,9 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
         "edge/fleetdaq_msgs/package.xml",
         "ptp/templates/ptp4l-slave-software.conf",
         "fleetdaq/cli/__init__.py",
+        "hub/web/static/index.html",
+        "hub/web/static/app.js",
+        "hub/web/static/style.css",
     ):
         assert shipped in names, shipped
 
@@ -52,6 +55,8 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
             "--json",
             "--listen",
             f"tcp/127.0.0.1:{free_port()}",
+            "--dashboard",
+            "127.0.0.1:0",
         ],
         cwd=empty,
         env=env,
@@ -69,3 +74,5 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
     assert summary["files"]
     assert all(Path(f).is_relative_to(state / "demo") for f in summary["files"])
     assert list(empty.iterdir()) == [], "the demo left nothing where it ran"
+    assert summary["dashboard"]["url"].startswith("http://127.0.0.1:")
+    assert "log in as demo / " in r.stderr

@@ -18,9 +18,10 @@ from edge.schema import Float, Strict
 
 def check_listen(value: str) -> str:
     """``host:port`` (``[::1]:8080`` for IPv6) with an address, not a name: what is exposed
-    must be said exactly. ``0.0.0.0:8080`` serves the whole LAN."""
+    must be said exactly. ``0.0.0.0:8080`` serves the whole LAN; port 0 takes any free port
+    (the one bound is logged, and the demo prints it)."""
     host, sep, port = value.rpartition(":")
-    if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
         raise ValueError(f"{value!r} is not address:port (e.g. 127.0.0.1:8080, 0.0.0.0:8080)")
     try:
         ipaddress.ip_address(host.removeprefix("[").removesuffix("]"))

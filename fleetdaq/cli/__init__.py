@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "rec": "fleetdaq.cli.rec:rec",
     "report": "fleetdaq.cli.report:report",
     "rules": "fleetdaq.cli.rules:rules",
+    "users": "fleetdaq.cli.users:users",
     "verify": "fleetdaq.cli.verify:verify",
 }
 """Sub-command -> ``"module:attribute"``, imported when the sub-command runs."""

@@ -31,14 +31,23 @@ from fleetdaq.cli.common import load_site, stop_on_signals
 )
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON summary at exit.")
 @click.option("--listen", help="Hub endpoint, overriding the site file (e.g. tcp/127.0.0.1:7450).")
+@click.option(
+    "--dashboard",
+    help="The dashboard's ADDRESS:PORT, overriding the site file (e.g. 127.0.0.1:8081; port 0: "
+    "any free port), or 'off'.",
+)
 def demo(
     config: str | None,
     data_dir: str | None,
     duration: float | None,
     as_json: bool,
     listen: str | None,
+    dashboard: str | None,
 ) -> None:
-    """Hub + every node of the site as separate processes, with a live table."""
+    """Hub + every node of the site as separate processes, with a live table.
+
+    The dashboard is served as the site file says (http://127.0.0.1:8080/ for the demo site);
+    the demo gives its user `demo` a new random password at each start and prints it."""
     from edge.config.site import demo_config_path
     from edge.paths import default_demo_dir
 
@@ -52,11 +61,19 @@ def demo(
             check_endpoint(listen)
         except ValueError as err:
             fail(f"--listen: {err}")
+    if dashboard and dashboard != "off":
+        from edge.config.dashboard import check_listen
+        from fleetdaq.cli.common import fail
+
+        try:
+            check_listen(dashboard)
+        except ValueError as err:
+            fail(f"--dashboard: {err}")
     from hub.demo import run_demo
 
     stop = stop_on_signals()
     root = Path(data_dir) if data_dir else default_demo_dir()
-    code, summary = run_demo(site, path, root, duration, stop, listen)
+    code, summary = run_demo(site, path, root, duration, stop, listen, dashboard)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
     sys.exit(code)

@@ -1,0 +1,324 @@
+"""What the dashboard costs the hub, and how late its live plots are.
+
+    python bench/dashboard.py [--window 25] [--warmup 8]
+
+A real hub (`fleetdaq hub`) and one real edge (`fleetdaq edge`: a wave_sim stream of 8 channels
+at 40 kS/s in 100 ms batches, 2.56 MB/s recorded) run in a network namespace that has only
+loopback, with two headless Chromium browsers (Debian's /usr/bin/chromium, driven by
+Playwright, never a downloaded browser) each plotting 4 channels of that stream over 10 s, and
+a scraper reading ``/metrics`` every second. The hub's CPU (utime + stime of its process, from
+/proc) is measured over a window without any of them, a window with them, and a window without
+them again (A-B-A: the machine is shared, so the baseline is taken on both sides); the ratio is
+B over the mean of the two As. Target: at most 10 % more.
+
+Plot delay: for every frame a browser receives, its receive time (the page's clock) minus the
+frame's newest sample time (acquisition time, from the edge's clock fit); both are this
+machine's CLOCK_REALTIME. It includes the batch's own 100 ms, the hub's wait for the next 20 Hz
+check, the frame's computation and the WebSocket. Target: p99 at most 300 ms.
+
+Bounded: about 2 minutes. Progress on stderr; the last line on stdout is one JSON object with
+the figures, the targets and whether they are met.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge` package
+sys.path.insert(0, str(REPO))  # this checkout's code, whatever else is installed
+
+TARGET_RATIO = 1.10
+TARGET_P99_MS = 300.0
+CHANNELS = ["heave", "surge", "pitch", "pto_force"]
+CHROMIUM = "/usr/bin/chromium"
+SITE = """\
+site: dashbench
+hub:
+  listen: [tcp/127.0.0.1:7447]
+  recorder: {{file_duration_s: 600}}
+  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
+  snapshot: {{enabled: false}}
+nodes:
+  wec:
+    streams:
+      t8:
+        driver: wave_sim
+        rate_hz: 40000
+        scans_per_batch: 4000
+        channels:
+          - {{name: heave, unit: m, scale: 0.5}}
+          - {{name: surge, unit: m, scale: 0.25}}
+          - {{name: pitch, unit: deg, scale: 2.0}}
+          - {{name: pto_force, unit: kN, scale: 12.5, offset: -1.0}}
+          - {{name: pto_velocity, unit: m/s, scale: 0.2}}
+          - {{name: mooring_tension_a, unit: kN, scale: 25.0, offset: 40.0}}
+          - {{name: mooring_tension_b, unit: kN, scale: 25.0, offset: 40.0}}
+          - {{name: hull_pressure, unit: kPa, scale: 10.0, offset: 101.3}}
+"""
+
+
+def log(msg: str) -> None:
+    print(f"[dashboard {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def env() -> dict[str, str]:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(REPO)
+    e["PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD"] = "1"
+    return e
+
+
+def cpu_s(pid: int) -> float:
+    """utime + stime of one process, seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def measure(pid: int, seconds: float) -> float:
+    """The process's CPU share of one core over `seconds` (the measurement itself)."""
+    c0, t0 = cpu_s(pid), time.monotonic()
+    time.sleep(seconds)
+    return (cpu_s(pid) - c0) / (time.monotonic() - t0)
+
+
+def percentile(xs: list[float], q: float) -> float:
+    s = sorted(xs)
+    return s[min(len(s) - 1, round(q * (len(s) - 1)))] if s else float("nan")
+
+
+# --- inside the namespace: the browsers and the scraper ------------------------------------------
+
+
+def browsers(url: str, control: Path) -> None:
+    """Two browsers plotting 4 channels each, /metrics every second; `control/ready` once both
+    draw, stop on `control/stop`, delays to `control/delays.json`."""
+    from playwright.sync_api import sync_playwright
+
+    plots = json.dumps([{"stream": "wec/t8", "channels": CHANNELS, "span": 10}])
+    scrapes = {"ok": 0, "failed": 0}
+    stop = threading.Event()
+
+    def scrape() -> None:
+        while not stop.wait(1.0):
+            try:
+                with urllib.request.urlopen(url + "metrics", timeout=5) as r:
+                    r.read()
+                scrapes["ok"] += 1
+            except OSError:
+                scrapes["failed"] += 1
+
+    with sync_playwright() as p:
+        pages = []
+        instances = []
+        for _ in range(2):
+            b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
+            instances.append(b)
+            page = b.new_page(viewport={"width": 1400, "height": 900})
+            page.add_init_script(f"localStorage.setItem('fleetdaq.plots.dashbench', {plots!r})")
+            page.goto(url)
+            pages.append(page)
+        for page in pages:
+            page.wait_for_function("() => window.fleetdaq.stats.drawn > 20", timeout=60_000)
+        scraper = threading.Thread(target=scrape, daemon=True)
+        scraper.start()
+        (control / "ready").touch()
+        while not (control / "start").exists():
+            time.sleep(0.1)
+        js = "() => [window.fleetdaq.stats.frames, window.fleetdaq.stats.drawn]"
+        start = [page.evaluate(js) for page in pages]
+        hub0 = pages[0].evaluate("() => window.fleetdaq.stats.hub")
+        for page in pages:
+            page.evaluate("() => { window.fleetdaq.stats.delays.length = 0; }")
+        t0 = time.monotonic()
+        while not (control / "stop").exists():
+            time.sleep(0.1)
+        elapsed = time.monotonic() - t0
+        out: dict[str, Any] = {"delays_ms": [], "fps": [], "drawn_per_s": []}
+        for page, (f0, d0) in zip(pages, start, strict=True):
+            got = page.evaluate(
+                "() => [window.fleetdaq.stats.delays, window.fleetdaq.stats.frames, "
+                "window.fleetdaq.stats.drawn, window.fleetdaq.stats.dropped_by_hub]"
+            )
+            out["delays_ms"] += got[0]
+            out["fps"].append((got[1] - f0) / elapsed)
+            out["drawn_per_s"].append((got[2] - d0) / elapsed)
+            out["dropped_by_hub"] = got[3]
+        stop.set()
+        scraper.join(5)
+        out["scrapes"] = scrapes
+        out["window_s"] = elapsed
+        hub1 = pages[0].evaluate("() => window.fleetdaq.stats.hub")
+        out["dashboard_cpu_pct"] = {
+            k: round(100 * (hub1[k] - hub0[k]) / elapsed, 2)
+            for k in ("state_cpu_s", "frames_cpu_s", "metrics_cpu_s")
+        }
+        (control / "delays.json").write_text(json.dumps(out))
+        for b in instances:
+            b.close()
+
+
+# --- outside: the run ----------------------------------------------------------------------------
+
+
+class Namespace:
+    def __init__(self) -> None:
+        self.name = f"fdqbench{os.getpid()}"
+        self.procs: list[subprocess.Popen[bytes]] = []
+        subprocess.run(["ip", "netns", "add", self.name], check=True, capture_output=True)
+        subprocess.run(["ip", "-n", self.name, "link", "set", "lo", "up"], check=True)
+
+    def start(self, args: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+        p = subprocess.Popen(
+            ["ip", "netns", "exec", self.name, *args],
+            cwd=REPO, env=env(), stdin=subprocess.DEVNULL,
+            stdout=log_path.open("wb"), stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        self.procs.append(p)
+        return p
+
+    def close(self) -> None:
+        for p in reversed(self.procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.wait(30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+        out = subprocess.run(
+            ["ip", "netns", "pids", self.name], capture_output=True, text=True, check=False
+        )
+        for pid in out.stdout.split():  # only ever our own descendants
+            with contextlib.suppress(OSError):
+                os.kill(int(pid), signal.SIGKILL)
+        subprocess.run(["ip", "netns", "del", self.name], check=False, capture_output=True)
+
+
+def wait_for(cond: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        time.sleep(0.1)
+
+
+def run(window: float, warmup: float) -> dict[str, Any]:
+    from argon2 import PasswordHasher
+
+    from hub.web.users import write_users
+
+    tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-dashboard-"))
+    users = tmp / "users"
+    write_users(users, {"bench": PasswordHasher().hash("not used")})
+    site = tmp / "site.yaml"
+    site.write_text(SITE.format(users=users))
+    control = tmp / "control"
+    control.mkdir()
+    ns = Namespace()
+    try:
+        hub = ns.start(
+            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--data",
+             str(tmp / "data")],
+            tmp / "hub.log",
+        )  # fmt: skip
+        wait_for(lambda: "dashboard on" in (tmp / "hub.log").read_text(), 60, "the hub")
+        ns.start(
+            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(site), "--node", "wec",
+             "--spool", str(tmp / "spool")],
+            tmp / "edge.log",
+        )  # fmt: skip
+        log(f"hub pid {hub.pid} and edge started; warming up {warmup:g} s")
+        time.sleep(warmup)
+        log(f"A1: hub without browsers, {window:g} s")
+        a1 = measure(hub.pid, window)
+        log(f"A1: {100 * a1:.1f} % of a core; starting two browsers and the /metrics scraper")
+        driver = ns.start(
+            [sys.executable, str(Path(__file__).resolve()), "--browsers",
+             "http://127.0.0.1:8080/", str(control)],
+            tmp / "browsers.log",
+        )  # fmt: skip
+        wait_for(
+            lambda: (control / "ready").exists() or driver.poll() is not None, 120, "the browsers"
+        )
+        if driver.poll() is not None:
+            raise RuntimeError((tmp / "browsers.log").read_text()[-3000:])
+        time.sleep(warmup)
+        (control / "start").touch()
+        log(f"B: hub with two browsers plotting and /metrics scraped, {window:g} s")
+        b = measure(hub.pid, window)
+        (control / "stop").touch()
+        wait_for((control / "delays.json").exists, 60, "the browsers' figures")
+        driver.wait(60)
+        browsers_out = json.loads((control / "delays.json").read_text())
+        log(f"B: {100 * b:.1f} % of a core; browsers closed, settling {warmup:g} s")
+        time.sleep(warmup)
+        log(f"A2: hub without browsers again, {window:g} s")
+        a2 = measure(hub.pid, window)
+        log(f"A2: {100 * a2:.1f} % of a core")
+    finally:
+        ns.close()
+    base = (a1 + a2) / 2
+    delays = browsers_out["delays_ms"]
+    return {
+        "hub_cpu_pct_without": round(100 * base, 2),
+        "hub_cpu_pct_without_a1_a2": [round(100 * a1, 2), round(100 * a2, 2)],
+        "hub_cpu_pct_with": round(100 * b, 2),
+        "ratio": round(b / base, 3),
+        "extra_pct_of_a_core": round(100 * (b - base), 2),
+        "delay_ms_p50": round(statistics.median(delays), 1) if delays else None,
+        "delay_ms_p99": round(percentile(delays, 0.99), 1) if delays else None,
+        "delay_ms_max": round(max(delays), 1) if delays else None,
+        "frames": len(delays),
+        "frames_per_s_per_browser": [round(x, 2) for x in browsers_out["fps"]],
+        "drawn_per_s_per_browser": [round(x, 2) for x in browsers_out["drawn_per_s"]],
+        "dropped_by_hub": browsers_out.get("dropped_by_hub"),
+        "dashboard_cpu_pct_by_part": browsers_out["dashboard_cpu_pct"],
+        "metrics_scrapes": browsers_out["scrapes"],
+        "window_s": window,
+    }
+
+
+def main() -> None:
+    if len(sys.argv) >= 2 and sys.argv[1] == "--browsers":
+        browsers(sys.argv[2], Path(sys.argv[3]))
+        return
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--window", type=float, default=25.0, help="seconds per measured window")
+    ap.add_argument("--warmup", type=float, default=8.0, help="seconds before each window")
+    args = ap.parse_args()
+    if os.geteuid() != 0 or not Path(CHROMIUM).exists():
+        sys.exit("needs root (network namespaces) and Debian's chromium (apt-get install chromium)")
+    figures = run(min(args.window, 40.0), min(args.warmup, 20.0))
+    p99 = figures["delay_ms_p99"]
+    print(
+        json.dumps(
+            {
+                "bench": "dashboard",
+                "figures": figures,
+                "targets": {"cpu_ratio": TARGET_RATIO, "delay_ms_p99": TARGET_P99_MS},
+                "met": {
+                    "cpu_ratio": figures["ratio"] <= TARGET_RATIO,
+                    "delay_ms_p99": p99 is not None and p99 <= TARGET_P99_MS,
+                },
+            }
+        ),
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    main()

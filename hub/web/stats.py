@@ -1,0 +1,39 @@
+"""The dashboard's own counters: what it served and what it refused (bad input from the network
+is refused with a clear answer and counted, never a crash)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+
+@dataclass(slots=True)
+class WebStats:
+    requests: int = 0
+    bad_requests: int = 0
+    """Answered 4xx: bad input, unknown routes, bodies too big."""
+    unauthorized: int = 0
+    """Refused for want of a login (401)."""
+    forbidden: int = 0
+    """Refused by the CSRF or Origin check (403)."""
+    server_errors: int = 0
+    """Answered 500: a bug, logged with its traceback; the service goes on."""
+    actions: int = 0
+    """Alarm, output and recorder actions passed on to the hub."""
+    ws_clients: int = 0
+    ws_connections: int = 0
+    ws_bad_messages: int = 0
+    ws_dropped: int = 0
+    """Messages replaced before a slow client took them (a newer state or frame went instead)."""
+    ws_sent: int = 0
+    frames_computed: int = 0
+    tick_errors: int = 0
+    state_cpu_s: float = 0.0
+    """CPU seconds spent building and queueing the 2 Hz state (the loop's thread)."""
+    frames_cpu_s: float = 0.0
+    """CPU seconds spent on live plot frames."""
+    metrics_cpu_s: float = 0.0
+    """CPU seconds spent answering /metrics."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)

@@ -1,0 +1,171 @@
+"""The dashboard's users file: one ``name:argon2-hash`` line per user (``#`` comments and blank
+lines allowed), never in the site file. `fleetdaq users add NAME` writes it (mode 0600,
+atomically); the hub re-reads it whenever it changes, so adding or removing a user needs no
+restart, and removing one (or changing their password) ends their sessions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import stat
+import threading
+from pathlib import Path
+
+from argon2 import PasswordHasher
+
+from edge.paths import state_dir
+from hub.errors import HubError
+
+log = logging.getLogger("fleetdaq.dashboard")
+
+USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")
+"""A user name: what the audit shows (ack by NAME@address), so nothing that needs quoting."""
+MAX_USERS_FILE_BYTES = 1 << 20
+
+
+class UsersFileError(HubError):
+    """The users file cannot be read or written, or a line in it is not ``name:hash``."""
+
+
+def default_users_file() -> Path:
+    return state_dir() / "dashboard-users"
+
+
+def check_name(name: str) -> str:
+    if not USER_NAME.match(name):
+        raise UsersFileError(
+            f"{name!r} is not a user name (letters, digits, _ . @ -, at most 64, "
+            "starting with a letter or digit)"
+        )
+    return name
+
+
+def parse_users(text: str, where: str = "users file") -> tuple[dict[str, str], list[str]]:
+    """(name -> hash, problems): lines that are not ``name:$argon2...`` are left out and named."""
+    users: dict[str, str] = {}
+    problems: list[str] = []
+    for number, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        name, sep, hashed = line.partition(":")
+        if not sep or not USER_NAME.match(name) or not hashed.startswith("$argon2"):
+            problems.append(f"{where}:{number}: not NAME:ARGON2-HASH; line ignored")
+            continue
+        if name in users:
+            problems.append(f"{where}:{number}: {name} appears again; the later line counts")
+        users[name] = hashed
+    return users, problems
+
+
+def read_users(path: Path) -> dict[str, str]:
+    """Every user in `path` ({} when there is no file). Raises UsersFileError for a file that
+    cannot be read or has a line that is not ``name:hash`` (the command line refuses to
+    rewrite what it cannot understand)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return {}
+    except (OSError, UnicodeDecodeError) as err:
+        raise UsersFileError(f"cannot read {path}: {err}") from err
+    users, problems = parse_users(text, str(path))
+    if problems:
+        raise UsersFileError(problems[0])
+    return users
+
+
+def write_users(path: Path, users: dict[str, str]) -> None:
+    """Replace `path` with `users`, atomically (a temporary file in the same folder, fsynced,
+    renamed over it), readable and writable by its owner only (0600)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    body = "".join(f"{check_name(n)}:{h}\n" for n, h in sorted(users.items()))
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            os.fchmod(fh.fileno(), 0o600)
+            fh.write(
+                "# fleetdaq dashboard users: NAME:ARGON2-HASH (fleetdaq users add|remove|list)\n"
+            )
+            fh.write(body)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise UsersFileError(f"cannot write {path}: {err}") from err
+
+
+def hash_password(password: str) -> str:
+    """An argon2id hash (argon2-cffi's defaults) of `password`."""
+    return PasswordHasher().hash(password)
+
+
+class UsersFile:
+    """The users file as the hub sees it: read again whenever its identity, size or modification
+    time changes (a `stat` per look-up). A missing or unreadable file means no users: nobody
+    can log in. A bad line is logged once and left out; the other users still work."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+        self._signature: tuple[int, int, int, int] | None = None
+        self._users: dict[str, str] = {}
+        self.reloads = 0
+
+    def _refresh(self) -> dict[str, str]:
+        try:
+            st = self.path.stat()
+            signature: tuple[int, int, int, int] | None = (
+                st.st_ino,
+                st.st_size,
+                st.st_mtime_ns,
+                st.st_ctime_ns,
+            )
+        except OSError:
+            signature = None
+        with self._lock:
+            if signature == self._signature:
+                return self._users
+            self._signature = signature
+            self.reloads += 1
+            self._users = self._load(signature is not None)
+            return self._users
+
+    def _load(self, exists: bool) -> dict[str, str]:
+        if not exists:
+            log.info("no dashboard users file at %s: nobody can log in", self.path)
+            return {}
+        try:
+            if self.path.stat().st_size > MAX_USERS_FILE_BYTES:
+                log.error("%s is over %d bytes: nobody can log in", self.path, MAX_USERS_FILE_BYTES)
+                return {}
+            mode = stat.S_IMODE(self.path.stat().st_mode)
+            text = self.path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as err:
+            log.error("cannot read the dashboard users file %s: %s", self.path, err)
+            return {}
+        if mode & 0o077:
+            log.warning(
+                "%s is readable by others (mode %o): chmod 600 it", self.path, mode
+            )  # fmt: skip
+        users, problems = parse_users(text, str(self.path))
+        for p in problems:
+            log.error("%s", p)
+        log.info("dashboard users: %d from %s", len(users), self.path)
+        return users
+
+    def hash_of(self, name: str) -> str | None:
+        return self._refresh().get(name)
+
+    def names(self) -> list[str]:
+        return sorted(self._refresh())

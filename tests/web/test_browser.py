@@ -1,0 +1,309 @@
+"""The dashboard in a real browser: `fleetdaq demo` (hub + three simulated edges, each its own
+process) and headless Debian Chromium driven by Playwright, all inside a network namespace that
+has nothing but loopback. What the browser saw is judged here, with what the hub wrote on disk
+(the alarm journal, events.log, the recording's files).
+
+Screenshots: ``tests/web/output/`` (not committed).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hub.session import ACTIVE_SUFFIX
+from tests.procs import REPO, wait_until
+from tests.web.netns import Netns, NsProc, ensure_chromium, netns_problem
+
+OUTPUT = Path(__file__).resolve().parent / "output"
+NODES = ("wec", "am-cell", "shore")
+STREAMS = ("wec/t8", "am-cell/tc", "am-cell/robot", "shore/env")
+USER, PASSWORD = "night-shift", "a long night at sea"
+LOGIN_LINE = re.compile(r"dashboard: (\S+)\s+log in as (\S+) / (\S+)")
+
+
+@dataclass
+class Tour:
+    result: dict[str, Any]
+    url: str
+    data: Path
+    demo_exit: int
+    demo_log: str
+    summary: dict[str, Any]
+    left_running: list[int]
+
+
+def needs_a_namespace() -> None:
+    problem = netns_problem()
+    if problem is not None:
+        pytest.skip(f"the browser tests run Chromium in a loopback-only namespace: {problem}")
+    ensure_chromium()
+
+
+def start_demo_and_wait_for_login(ns: Netns, tmp: Path, data: Path) -> tuple[NsProc, str, str]:
+    demo = ns.start(
+        [sys.executable, "-m", "fleetdaq", "demo", "--data", str(data), "--json"],
+        tmp / "demo.log",
+        stdout=tmp / "demo.json",
+    )
+
+    def login_line() -> re.Match[str] | None:
+        if demo.popen.poll() is not None:
+            raise AssertionError(f"the demo exited: {demo.output()[-3000:]}")
+        return LOGIN_LINE.search(demo.output())
+
+    m = wait_until(login_line, 60, "the demo to print the dashboard's address and login")
+    return demo, m.group(1), m.group(3)
+
+
+def run_browser(ns: Netns, tmp: Path, scenario: str, args: dict[str, Any]) -> dict[str, Any]:
+    out = tmp / f"{scenario}-out"
+    args = {**args, "out": str(out)}
+    (tmp / f"{scenario}.json").write_text(json.dumps(args))
+    driver = ns.start(
+        [sys.executable, "-m", "tests.web.browser", scenario, str(tmp / f"{scenario}.json")],
+        tmp / f"{scenario}-browser.log",
+    )
+    driver.wait(300)
+    result: dict[str, Any] = (
+        json.loads((out / "result.json").read_text())
+        if (out / "result.json").exists()
+        else {"ok": False, "error": driver.output()[-4000:]}
+    )
+    OUTPUT.mkdir(exist_ok=True)
+    for png in out.glob("*.png"):
+        shutil.copy(png, OUTPUT / f"{scenario}-{png.name}")
+    return result
+
+
+@pytest.fixture(scope="module")
+def tour(tmp_path_factory: pytest.TempPathFactory) -> Tour:
+    needs_a_namespace()
+    tmp = tmp_path_factory.mktemp("dashboard")
+    data = tmp / "data"
+    with Netns("tour") as ns:
+        demo, url, demo_password = start_demo_and_wait_for_login(ns, tmp, data)
+        # A user added with the command line while the hub runs: the hub reads the file again.
+        added = subprocess.run(
+            [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
+             "--file", str(data / "dashboard-users")],
+            input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
+        )  # fmt: skip
+        assert added.returncode == 0, added.stderr
+        result = run_browser(
+            ns,
+            tmp,
+            "tour",
+            {
+                "url": url, "user": USER, "password": PASSWORD, "demo_user": "demo",
+                "demo_password": demo_password, "nodes": list(NODES), "streams": list(STREAMS),
+                "fast_stream": "wec/t8", "alarm": "substrate_hot",
+            },
+        )  # fmt: skip
+        demo_exit = demo.terminate(60)
+        left = ns.close()
+    stdout = (tmp / "demo.json").read_text()
+    return Tour(
+        result=result,
+        url=url,
+        data=data,
+        demo_exit=demo_exit,
+        demo_log=demo.output(),
+        summary=json.loads(stdout) if stdout.strip() else {},
+        left_running=left,
+    )
+
+
+def completed(t: Tour) -> dict[str, Any]:
+    assert t.result["ok"], t.result.get("error")
+    return t.result
+
+
+def test_the_page_loads_and_runs_with_no_outside_network(tour: Tour):
+    r = completed(tour)
+    assert r["requests"], "the page made requests"
+    outside = [u for u in r["requests"] if not u.startswith(tour.url.rstrip("/"))]
+    assert outside == [], "every request goes to the hub"
+    assert r["failed_requests"] == []
+    assert r["console_errors"] == [], "nothing went wrong before the deliberate refusals"
+    assert r["console_errors_after"] == [], "and nothing but them after"
+    assert r["page_errors"] == []
+
+
+def test_every_demo_node_and_stream_is_shown(tour: Tour):
+    r = completed(tour)
+    fleet = {row[0]: row for row in r["fleet"]}
+    assert set(fleet) == {*NODES, "hub"}
+    assert all(fleet[n][1] == "yes" for n in NODES), fleet
+    assert all(fleet[n][2] == "0.1.0" for n in NODES), "each node's version"
+    streams = {row[0]: row for row in r["streams"]}
+    assert set(streams) == set(STREAMS)
+    assert "heave" in streams["wec/t8"][6]
+    assert " m" in streams["wec/t8"][6], "values with their units"
+    assert "degC" in streams["am-cell/tc"][6]
+
+
+def test_values_and_plots_change_live(tour: Tour):
+    r = completed(tour)
+    first, later = r["values"]
+    assert first != later
+    assert r["plots"] == ["Plot of wec/t8: heave, surge"]
+    assert r["plots_after_adding"] == [
+        "Plot of wec/t8: heave, surge", "Plot of am-cell/tc: substrate"
+    ]  # fmt: skip
+    # Drawn at the stream's pace (100 ms batches, ~10 frames/s), not at the 2 Hz state pace.
+    assert r["plot_fps"] > 5, r["plot_fps"]
+
+
+def test_an_alarm_is_acked_through_the_page_and_its_audit_names_the_user(tour: Tour):
+    r = completed(tour)
+    name = r["alarm"]
+    assert r["ack_toast"].startswith(f"ack {name}: done"), r["ack_toast"]
+    assert r["alarm_after_ack"][0] == name
+    assert r["alarm_after_ack"][1] in ("active acked", "normal")
+    journal = [json.loads(line) for line in (tour.data / "alarms.journal").read_text().splitlines()]
+    acks = [j for j in journal if j["name"] == name and j["transition"] == "acked"]
+    assert len(acks) == 1, acks
+    assert (acks[0]["user"], acks[0]["host"]) == (USER, "127.0.0.1")
+    assert acks[0]["note"] == "seen from the dashboard test"
+    events = (tour.data / "events.log").read_text()
+    assert f"{name} acked by {USER}@127.0.0.1: seen from the dashboard test" in events
+
+
+def test_an_ack_is_refused_without_a_login_without_the_csrf_token_and_from_another_origin(
+    tour: Tour,
+):
+    r = completed(tour)
+    assert r["ack_button_disabled_logged_out"] is True
+    assert r["ack_without_login"]["status"] == 401
+    assert r["ack_without_csrf"]["status"] == 403
+    assert "X-CSRF-Token" in r["ack_without_csrf"]["body"]["error"]
+    status, body = r["ack_foreign_origin"]
+    assert status == 403
+    assert "evil.example" in body["error"]
+    assert r["cookie_flags"] == [
+        {"name": "fleetdaq_session", "httpOnly": True, "sameSite": "Strict"}
+    ]  # fmt: skip
+    journal = (tour.data / "alarms.journal").read_text().splitlines()
+    acks = [j for j in map(json.loads, journal) if j["transition"] == "acked"]
+    assert len(acks) == 1, "only the ack made through the page went through"
+
+
+def test_a_wrong_password_is_refused_and_said_on_the_page(tour: Tour):
+    r = completed(tour)
+    assert r["wrong_password_status"] == 401
+    assert r["wrong_password_text"] == "wrong user name or password"
+    assert f"dashboard login refused for '{USER}'" in (tour.data / "events.log").read_text()
+
+
+def test_a_split_from_the_page_closes_the_file_and_starts_a_new_one(tour: Tour):
+    r = completed(tour)
+    assert r["split_toast"].startswith("recorder split: done — closed"), r["split_toast"]
+    before, after = r["recorder_before"], r["recorder_after"]
+    assert int(after["Files written"]) == int(before["Files written"]) + 1
+    assert after["Current file"] != before["Current file"]
+    assert before["Current file"].endswith(ACTIVE_SUFFIX)
+    closed = before["Current file"].removesuffix(ACTIVE_SUFFIX)
+    session = tour.data / before["Session"]
+    assert (session / closed).is_file(), "the file the split closed is on disk, finished"
+    events = (tour.data / "events.log").read_text()
+    assert re.search(rf"{re.escape(closed)} closed on request by {USER}@127\.0\.0\.1", events)
+    assert r["split_disabled_after_logout"] is True
+
+
+def test_the_demo_prints_the_dashboard_address_and_login_and_its_summary_has_it(tour: Tour):
+    r = completed(tour)
+    assert tour.url == "http://127.0.0.1:8080/"
+    assert r["demo_login"] is True
+    assert tour.demo_exit == 0, tour.demo_log[-3000:]
+    assert tour.summary["dashboard"] == {
+        "url": tour.url, "user": "demo", "users_file": str(tour.data / "dashboard-users")
+    }  # fmt: skip
+
+
+def test_nothing_started_by_the_test_is_left_running(tour: Tour):
+    assert tour.left_running == []
+
+
+# --- outputs: needs the edge's outputs (the control branch) ------------------------------------
+
+OUTPUT_SITE = """\
+site: webout
+hub:
+  listen: [tcp/127.0.0.1:7447]
+  recorder: {{file_duration_s: 60}}
+  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
+nodes:
+  rig:
+    streams:
+      env:
+        driver: environment_sim
+        rate_hz: 2
+        channels: [{{name: air, unit: degC}}, {{name: humidity, unit: "%RH"}}]
+    outputs:
+      valve:
+        driver: mcp4725
+        unit: V
+        min: 0
+        max: 3
+        safe: 0
+        sim: {{}}
+"""
+
+
+def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
+    tmp_path: Path,
+):
+    needs_a_namespace()
+    data, users = tmp_path / "data", tmp_path / "users"
+    added = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
+         "--file", str(users)],
+        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert added.returncode == 0, added.stderr
+    site = tmp_path / "site.yaml"
+    site.write_text(OUTPUT_SITE.format(users=users))
+    checked = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "check", str(site)],
+        capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert checked.returncode == 0, f"this site needs the edge's outputs: {checked.stderr}"
+    with Netns("out") as ns:
+        hub = ns.start(
+            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--data", str(data)],
+            tmp_path / "hub.log",
+        )
+        edge = ns.start(
+            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(site), "--node", "rig",
+             "--spool", str(tmp_path / "spool")],
+            tmp_path / "edge.log",
+        )  # fmt: skip
+        wait_until(
+            lambda: "dashboard on http://127.0.0.1:8080/" in hub.output() or hub.popen.poll(),
+            60,
+            "the hub's dashboard",
+        )
+        assert hub.popen.poll() is None, hub.output()[-3000:]
+        result = run_browser(
+            ns,
+            tmp_path,
+            "outputs",
+            {"url": "http://127.0.0.1:8080/", "user": USER, "password": PASSWORD,
+             "output": "rig/valve", "value": 1.5},
+        )  # fmt: skip
+        assert edge.terminate(30) == 0, edge.output()[-3000:]
+        assert hub.terminate(30) == 0, hub.output()[-3000:]
+        assert ns.close() == []
+    assert result["ok"], result.get("error")
+    assert "applied" in result["toast"]
+    events = (data / "events.log").read_text()
+    assert re.search(rf"rig/valve: set 1\.5 applied.*by operator {USER}@127\.0\.0\.1", events)
