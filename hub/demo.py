@@ -176,14 +176,20 @@ def demo_login(users_file: Path) -> str:
     return password
 
 
-def with_dashboard(site: SiteConfig, users_file: Path, listen: str | None) -> SiteConfig:
-    """The site with the demo's users file, and `listen` ("off": no dashboard) if given."""
+def with_dashboard(
+    site: SiteConfig, users_file: Path, listen: str | None, foxglove: str | None = None
+) -> SiteConfig:
+    """The site with the demo's users file, and `listen` / `foxglove` ("off": none) if given."""
     dash = site.hub.dashboard
     update: dict[str, Any] = {"users_file": str(users_file)}
     if listen == "off":
         update["enabled"] = False
     elif listen:
         update["listen"] = listen
+    if foxglove == "off":
+        update["foxglove"] = dash.foxglove.model_copy(update={"enabled": False})
+    elif foxglove:
+        update["foxglove"] = dash.foxglove.model_copy(update={"enabled": True, "listen": foxglove})
     hub = site.hub.model_copy(update={"dashboard": dash.model_copy(update=update)})
     return site.model_copy(update={"hub": hub})
 
@@ -196,16 +202,17 @@ def run_demo(
     stop: threading.Event,
     listen: str | None,
     dashboard: str | None = None,
+    foxglove: str | None = None,
 ) -> tuple[int, dict[str, Any]]:
     """Run until `duration` elapses or `stop` is set; return (exit code, summary).
 
-    `dashboard`: the dashboard's ADDRESS:PORT instead of the site file's, or "off"."""
+    `dashboard`, `foxglove`: ADDRESS:PORT instead of the site file's, or "off"."""
     console = Console(stderr=True)
     if not console.is_terminal:
         console = Console(stderr=True, width=120)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     users_file = data_dir / "dashboard-users"
-    site = with_dashboard(site, users_file, dashboard)
+    site = with_dashboard(site, users_file, dashboard, foxglove)
     password = demo_login(users_file) if site.hub.dashboard.enabled else ""
     h = HubRuntime(site, data_dir, [listen] if listen else None)
     try:
@@ -217,7 +224,11 @@ def run_demo(
         console.print(f"[red]{err}[/red]")
         if "dashboard" in str(err):
             console.print("Try --dashboard 127.0.0.1:8081 (or --dashboard off).")
+        if "Foxglove" in str(err):
+            console.print("Try --foxglove 127.0.0.1:8766 (or --foxglove off).")
         return 2, {"error": str(err)}
+    for fox in h.foxglove:
+        console.print(f"Foxglove / Lichtblick: open a Foxglove WebSocket connection to {fox.url}")
     web = h.dashboard
     if web is not None:
         console.print(

@@ -166,6 +166,7 @@ class HubRuntime:
             if site.hub.dashboard.enabled
             else None
         )
+        self.foxglove = FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot)
         self.services = ServiceStack(
             [
                 self.router,
@@ -183,7 +184,7 @@ class HubRuntime:
                 self.commands,
                 self.rules,
                 self.recorder_requests,
-                *FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot),
+                *self.foxglove,
                 self.heartbeat,
                 self.status,
                 *([self.dashboard] if self.dashboard is not None else []),

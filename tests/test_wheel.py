@@ -57,6 +57,8 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
             f"tcp/127.0.0.1:{free_port()}",
             "--dashboard",
             "127.0.0.1:0",
+            "--foxglove",
+            "127.0.0.1:0",
         ],
         cwd=empty,
         env=env,

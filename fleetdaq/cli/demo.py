@@ -36,6 +36,11 @@ from fleetdaq.cli.common import load_site, stop_on_signals
     help="The dashboard's ADDRESS:PORT, overriding the site file (e.g. 127.0.0.1:8081; port 0: "
     "any free port), or 'off'.",
 )
+@click.option(
+    "--foxglove",
+    help="The Foxglove live view's ADDRESS:PORT, overriding the site file (port 0: any free "
+    "port), or 'off'.",
+)
 def demo(
     config: str | None,
     data_dir: str | None,
@@ -43,6 +48,7 @@ def demo(
     as_json: bool,
     listen: str | None,
     dashboard: str | None,
+    foxglove: str | None,
 ) -> None:
     """Hub + every node of the site as separate processes, with a live table.
 
@@ -61,19 +67,20 @@ def demo(
             check_endpoint(listen)
         except ValueError as err:
             fail(f"--listen: {err}")
-    if dashboard and dashboard != "off":
-        from edge.config.dashboard import check_listen
-        from fleetdaq.cli.common import fail
+    for option, value in (("--dashboard", dashboard), ("--foxglove", foxglove)):
+        if value and value != "off":
+            from edge.config.dashboard import check_listen
+            from fleetdaq.cli.common import fail
 
-        try:
-            check_listen(dashboard)
-        except ValueError as err:
-            fail(f"--dashboard: {err}")
+            try:
+                check_listen(value)
+            except ValueError as err:
+                fail(f"{option}: {err}")
     from hub.demo import run_demo
 
     stop = stop_on_signals()
     root = Path(data_dir) if data_dir else default_demo_dir()
-    code, summary = run_demo(site, path, root, duration, stop, listen, dashboard)
+    code, summary = run_demo(site, path, root, duration, stop, listen, dashboard, foxglove)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
     sys.exit(code)

@@ -168,7 +168,15 @@ class FoxgloveLive:
         self._running = True
         self._consumer.start()
         self._ticker.start()
-        log.info("Foxglove live view on ws://%s", self.listen)
+        log.info("Foxglove live view on %s", self.url)
+
+    @property
+    def url(self) -> str:
+        """``ws://HOST:PORT`` as bound (port 0 in the site file: the one the system gave)."""
+        host, port = split_listen(self.listen)
+        if self._server is not None:
+            port = int(self._server.port)
+        return f"ws://{host}:{port}"
 
     def stop(self) -> None:
         if self._running:
