@@ -35,6 +35,7 @@ from edge.keys import SiteKeys
 from edge.messages import KeyValue, NodeHealth, StreamHealth
 from edge.outputs import OutputService
 from edge.paths import default_spool_dir
+from edge.security import SecretFileError, TlsFiles, node_tls
 from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
@@ -59,6 +60,12 @@ class EdgeAgent:
         self.site = site
         self.node = node
         self.endpoints = endpoints or site.endpoints_for(node)
+        self.tls: TlsFiles | None = None
+        if site.security.tls:
+            try:
+                self.tls = node_tls(Path(site.security.pki_dir), node)
+            except SecretFileError as err:
+                raise DriverError(f"security.tls is on, but {err}") from None
         configured = site.nodes[node].spool.dir
         self.spool_dir = (
             spool_dir or (Path(configured) if configured else default_spool_dir())
@@ -189,7 +196,9 @@ class EdgeAgent:
             try:
                 # A short first attempt: the streams wait for it before they start.
                 timeout_ms = 2000 if warned else 500
-                session: Any = zenoh.open(client_config(self.endpoints, timeout_ms=timeout_ms))
+                session: Any = zenoh.open(
+                    client_config(self.endpoints, timeout_ms=timeout_ms, tls=self.tls)
+                )
             except zenoh.ZError as err:
                 for loop in self.loops:
                     loop.hub_unreachable.set()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import stat
+from dataclasses import dataclass
 from pathlib import Path
 
 OPERATOR_CN_PREFIX = "operator:"
@@ -46,3 +47,44 @@ def read_private_file(path: Path, what: str, limit: int = 1 << 20) -> bytes:
 def check_private_file(path: Path, what: str = "private key") -> None:
     """Raise SecretFileError unless `path` is a secret file only its owner may read."""
     read_private_file(path, what, limit=1)
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """What one process needs for mutual TLS: the site CA, its certificate, its private key."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    def check(self, who: str) -> TlsFiles:
+        """Refuse (SecretFileError, one line) a missing file or a key others may read."""
+        for what, path in (("the site CA", self.ca), (f"{who}'s certificate", self.cert)):
+            if not path.is_file():
+                raise SecretFileError(
+                    f"{what} {path}: no such file (security.pki_dir; `fleetdaq pki` makes it)"
+                )
+        check_private_file(self.key, f"{who}'s private key")
+        return self
+
+
+def hub_tls(pki_dir: Path) -> TlsFiles:
+    return TlsFiles(pki_dir / "ca.crt", pki_dir / "hub.crt", pki_dir / "hub.key").check("the hub")
+
+
+def node_tls(pki_dir: Path, node: str) -> TlsFiles:
+    stem = pki_dir / "nodes" / node
+    return TlsFiles(pki_dir / "ca.crt", stem.with_suffix(".crt"), stem.with_suffix(".key")).check(
+        f"node {node}"
+    )
+
+
+def operator_tls(pki_dir: Path) -> TlsFiles:
+    """An operator's pair: ``$FLEETDAQ_CERT`` and ``$FLEETDAQ_KEY``, else
+    ``~/.config/fleetdaq/operator.crt`` and ``.key``; the CA: ``$FLEETDAQ_CA``, else the
+    site's ``pki_dir``."""
+    home = Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "fleetdaq"
+    cert = Path(os.environ.get("FLEETDAQ_CERT") or home / "operator.crt")
+    key = Path(os.environ.get("FLEETDAQ_KEY") or cert.with_suffix(".key"))
+    ca = Path(os.environ.get("FLEETDAQ_CA") or pki_dir / "ca.crt")
+    return TlsFiles(ca, cert, key).check("the operator")

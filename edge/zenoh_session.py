@@ -1,4 +1,5 @@
-"""Opening Zenoh sessions the way fleetdaq uses them: explicit endpoints, no scouting."""
+"""Opening Zenoh sessions the way fleetdaq uses them: explicit endpoints, no scouting, and with
+the site's security on, mutual TLS (`edge.security.TlsFiles`) and the hub's access control."""
 
 from __future__ import annotations
 
@@ -7,12 +8,16 @@ from typing import Any
 
 import zenoh
 
+from edge.security import TlsFiles
 
-def client_config(endpoints: list[str], timeout_ms: int = -1) -> Any:
+
+def client_config(endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | None = None) -> Any:
     """A client session that connects to the hub's router(s) and never scouts.
 
     `timeout_ms` bounds how long opening waits for a router (-1: forever). Once open, the
-    session reconnects by itself when the router restarts.
+    session reconnects by itself when the router restarts. With `tls`, it shows its own
+    certificate and accepts only a router whose certificate the site CA signed, for the name
+    or address it connects to.
     """
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
@@ -20,16 +25,35 @@ def client_config(endpoints: list[str], timeout_ms: int = -1) -> Any:
     conf.insert_json5("connect/timeout_ms", str(timeout_ms))
     conf.insert_json5("scouting/multicast/enabled", "false")
     _no_shared_memory(conf)
+    if tls is not None:
+        _tls(conf, tls, "connect")
     return conf
 
 
-def router_config(listen: list[str]) -> Any:
+def router_config(
+    listen: list[str], tls: TlsFiles | None = None, acl: dict[str, Any] | None = None
+) -> Any:
+    """The hub's router; with `tls`, mutual TLS only (a client without a certificate from the
+    site CA is refused), and `acl` as its access control."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("router"))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
     _no_shared_memory(conf)
+    if tls is not None:
+        _tls(conf, tls, "listen")
+        # Every link TLS: a plain tcp/ listener next to the TLS one would bypass it all.
+        conf.insert_json5("transport/link/protocols", json.dumps(["tls"]))
+    if acl is not None:
+        conf.insert_json5("access_control", json.dumps(acl))
     return conf
+
+
+def _tls(conf: Any, tls: TlsFiles, side: str) -> None:
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tls.ca)))
+    conf.insert_json5("transport/link/tls/enable_mtls", "true")
+    conf.insert_json5(f"transport/link/tls/{side}_certificate", json.dumps(str(tls.cert)))
+    conf.insert_json5(f"transport/link/tls/{side}_private_key", json.dumps(str(tls.key)))
 
 
 def _no_shared_memory(conf: Any) -> None:

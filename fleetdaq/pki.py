@@ -39,7 +39,7 @@ CA_DAYS = 3650
 LEAF_DAYS = 825
 
 
-class PkiError(Exception):
+class PkiError(ValueError):
     """A one-line reason (no traceback for the person at the terminal)."""
 
 
@@ -256,3 +256,13 @@ def listing(folder: Path) -> list[CertInfo]:
             )
         )
     return out
+
+
+def operator_name(cert: Path) -> str:
+    """NAME from an operator certificate's ``operator:NAME`` common name."""
+    c = x509.load_pem_x509_certificate(cert.read_bytes())
+    cns = c.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    cn = str(cns[0].value) if cns else ""
+    if not cn.startswith(OPERATOR_CN_PREFIX):
+        raise PkiError(f"{cert} is not an operator's certificate (its name is {cn!r})")
+    return cn.removeprefix(OPERATOR_CN_PREFIX)

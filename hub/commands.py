@@ -10,7 +10,6 @@ only the caller's thread: operators' requests run on a small pool, never on a Ze
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
@@ -18,7 +17,6 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from edge.cdr import decode, encode
@@ -35,6 +33,7 @@ from edge.messages import (
 from hub.bus import EventBus
 from hub.read_model import HubView, ReadModel, to_jsonable
 from hub.recorder import Recorder
+from hub.requests import Caller, OperatorQueryable, as_caller
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.commands")
@@ -81,21 +80,18 @@ class CommandService:
         self.refused = 0
         self.timeouts = 0
         self._lock = threading.Lock()
-        self._pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="commands")
-        self._queryable: Any = None
+        # Operators' requests block while the edge is asked: a small pool answers them.
+        self.queryable = OperatorQueryable(
+            router, self.keys.hub("out"), self.handle, site.security, "commands", workers=4
+        )
 
     # --- lifecycle ------------------------------------------------------------------------------
 
     def start(self) -> None:
-        self._queryable = self.router.session.declare_queryable(
-            self.keys.hub("out"), self._on_query
-        )
+        self.queryable.start()
 
     def stop(self) -> None:
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self.queryable.stop()
 
     def failure(self) -> str | None:
         return None
@@ -232,11 +228,15 @@ class CommandService:
 
     # --- operators' requests ----------------------------------------------------------------
 
-    def handle(self, raw: bytes) -> dict[str, Any]:
+    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         """One operator request (JSON) -> its answer (JSON-ready). Blocks while the edge is
-        asked: run it on a worker thread."""
+        asked: run it on a worker thread. With `caller` (security on), its name is the user
+        recorded, and only the control role may command."""
         try:
             req = self._parse(raw)
+            refused = as_caller(req, caller, req["action"], ("list",))
+            if refused:
+                raise ValueError(refused)
         except ValueError as err:
             return {"ok": False, "error": str(err)}
         if req["action"] == "list":
@@ -325,17 +325,3 @@ class CommandService:
                 }
             )
         return rows
-
-    def _on_query(self, query: Any) -> None:
-        payload = query.payload
-        raw = payload.to_bytes() if payload is not None else b""
-
-        def answer() -> None:
-            try:
-                reply = self.handle(raw)
-                query.reply(self.keys.hub("out"), json.dumps(to_jsonable(reply)).encode())
-            except Exception:  # one request must never take the service down
-                log.exception("answering an output request failed")
-
-        with contextlib.suppress(RuntimeError):  # the pool is shutting down: the hub stops
-            self._pool.submit(answer)

@@ -11,10 +11,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from edge.config.security import SecurityConfig
 from edge.keys import SiteKeys
 from hub.read_model import HubView, to_jsonable
 from hub.recorder import Recorder
-from hub.requests import BadRequest, RequestService, parse_object, text
+from hub.requests import BadRequest, Caller, RequestService, as_caller, parse_object, text
 from hub.router import Router
 
 ACTIONS = ("status", "start", "stop", "split", "snapshot")
@@ -32,18 +33,22 @@ class RecorderRequests(RequestService):
         recorder: Recorder,
         view: Callable[[], HubView],
         snapshot: Snapshot | None,
+        security: SecurityConfig | None = None,
     ) -> None:
-        super().__init__(router, keys.hub("recorder"), workers=1)
+        super().__init__(router, keys.hub("recorder"), workers=1, security=security)
         self.recorder = recorder
         self.view = view
         self.snapshot = snapshot
 
-    def handle(self, raw: bytes) -> dict[str, Any]:
+    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         try:
             req = parse_object(raw, ("action", "user", "host", "note"))
             action = req.get("action", "status")
             if action not in ACTIONS:
                 raise BadRequest(f"unknown action {action!r} (one of {', '.join(ACTIONS)})")
+            refused = as_caller(req, caller, action, ("status",))
+            if refused:
+                raise BadRequest(refused)
             who = f"{text(req, 'user', 100, 'unknown')}@{text(req, 'host', 255, 'unknown')}"
             note = text(req, "note")
         except BadRequest as err:

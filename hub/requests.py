@@ -11,10 +11,12 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
+from edge.config.security import SecurityConfig
 from hub.read_model import to_jsonable
 from hub.router import Router
 
@@ -50,48 +52,141 @@ def text(req: dict[str, Any], key: str, limit: int = 500, default: str = "") -> 
     return value or default
 
 
-class RequestService:
-    """A queryable answering with ``handle(raw)`` (JSON-ready) on a worker pool."""
+@dataclass(frozen=True, slots=True)
+class Caller:
+    """Who asked, as the router vouches for it (security on: the key's ``by/NAME`` is the name
+    in the certificate that sent the query) and what they may do."""
 
-    name = "requests"
+    name: str
+    role: str
+    """"view" or "control"."""
 
-    def __init__(self, router: Router, key: str, workers: int = 2) -> None:
+    @property
+    def may_act(self) -> bool:
+        return self.role == "control"
+
+
+Handler = Callable[[bytes, "Caller | None"], dict[str, Any]]
+
+
+class OperatorQueryable:
+    """A hub service's queryable: ``hub/<service>`` and ``hub/<service>/by/<name>``.
+
+    With the site's security on, only the second is answered (the router admits an operator's
+    query there only for the name in its certificate): the handler gets that `Caller`, whose
+    name is the user to record, whatever the request says. Off, the first is answered with no
+    caller (the request's own user is recorded). Answers run on a small pool (`workers`), or
+    in the Zenoh callback when `workers` is 0 (quick, non-blocking answers only).
+    """
+
+    def __init__(
+        self,
+        router: Router,
+        key: str,
+        handler: Handler,
+        security: SecurityConfig | None,
+        name: str,
+        workers: int = 2,
+    ) -> None:
         self.router = router
         self.key = key
+        self.handler = handler
+        self.secure = security is not None and security.tls
+        self.operators = dict(security.operators) if security is not None else {}
+        self.name = name
         self.workers = workers
-        self._queryable: Any = None
+        self._queryables: list[Any] = []
         self._pool: ThreadPoolExecutor | None = None
 
-    def handle(self, raw: bytes) -> dict[str, Any]:
-        raise NotImplementedError
-
     def start(self) -> None:
-        self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix=self.name)
-        self._queryable = self.router.session.declare_queryable(self.key, self._on_query)
+        if self.workers:
+            self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix=self.name)
+        session = self.router.session
+        self._queryables = [
+            session.declare_queryable(self.key, self._on_query),
+            session.declare_queryable(f"{self.key}/by/*", self._on_query),
+        ]
 
     def stop(self) -> None:
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
+        for q in self._queryables:
+            q.undeclare()
+        self._queryables = []
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def failure(self) -> str | None:
-        return None
+    def caller(self, key: str) -> Caller | str | None:
+        """Who asked on `key`; a string says why the request is refused."""
+        if key == self.key:
+            if self.secure:
+                return "security is on: ask as an operator (fleetdaq with your certificate)"
+            return None
+        name = key.removeprefix(f"{self.key}/by/")
+        role = self.operators.get(name)
+        if self.secure and role is not None:
+            return Caller(name, role)
+        if self.secure:
+            return f"operator {name!r} is not in security.operators"
+        return Caller(name, role or "control")
 
     def _on_query(self, query: Any) -> None:
         payload = query.payload
         raw = payload.to_bytes() if payload is not None else b""
+        key = str(query.key_expr)
 
         def answer() -> None:
             try:
-                reply = self.handle(raw)
-                query.reply(self.key, json.dumps(to_jsonable(reply)).encode())
+                who = self.caller(key)
+                reply = (
+                    {"ok": False, "error": who} if isinstance(who, str) else self.handler(raw, who)
+                )
+                query.reply(key, json.dumps(to_jsonable(reply)).encode())
             except Exception:  # one request must never take the service down
-                log.exception("answering a request on %s failed", self.key)
+                log.exception("answering a request on %s failed", key)
 
         pool = self._pool
-        if pool is not None:
-            with contextlib.suppress(RuntimeError):  # the pool is shutting down: the hub stops
-                pool.submit(answer)
+        if pool is None:
+            answer()
+            return
+        with contextlib.suppress(RuntimeError):  # the pool is shutting down: the hub stops
+            pool.submit(answer)
+
+
+def as_caller(req: dict[str, Any], caller: Caller | None, action: str, read_only: tuple[str, ...]
+              ) -> str | None:  # fmt: skip
+    """Put the caller's name as the request's user; a reason when the caller may not `action`."""
+    if caller is None:
+        return None
+    req["user"] = caller.name
+    if action not in read_only and not caller.may_act:
+        return f"operator {caller.name} has the view role: {action} needs control"
+    return None
+
+
+class RequestService:
+    """A hub service answering operators' requests (`OperatorQueryable`) with `handle`."""
+
+    name = "requests"
+
+    def __init__(
+        self,
+        router: Router,
+        key: str,
+        workers: int = 2,
+        security: SecurityConfig | None = None,
+    ) -> None:
+        self.router = router
+        self.key = key
+        self.queryable = OperatorQueryable(router, key, self.handle, security, self.name, workers)
+
+    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def start(self) -> None:
+        self.queryable.start()
+
+    def stop(self) -> None:
+        self.queryable.stop()
+
+    def failure(self) -> str | None:
+        return None

@@ -3,23 +3,32 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from edge.config.site import SiteConfig
+from edge.security import SecretFileError, hub_tls
 from edge.zenoh_session import router_config
+from hub.acl import access_control
 from hub.errors import RouterError
 
 log = logging.getLogger("fleetdaq.hub")
 
 
 class Router:
-    """Opens the router on start (edges connect to its `listen` endpoints); closes it last."""
+    """Opens the router on start (edges connect to its `listen` endpoints); closes it last.
+
+    With the site's `security.tls`, the router speaks mutual TLS only, with the hub's
+    certificate, and filters every message by the access control list made from the site file
+    (`hub.acl`)."""
 
     name = "router"
 
-    def __init__(self, listen: list[str]) -> None:
+    def __init__(self, listen: list[str], site: SiteConfig | None = None) -> None:
         self.listen = listen
+        self.site = site
         self._session: Any = None
 
     @property
@@ -29,8 +38,15 @@ class Router:
         return self._session
 
     def start(self) -> None:
+        tls = acl = None
+        if self.site is not None and self.site.security.tls:
+            try:
+                tls = hub_tls(Path(self.site.security.pki_dir))
+            except SecretFileError as err:
+                raise RouterError(f"security.tls is on, but {err}") from None
+            acl = access_control(self.site)
         try:
-            self._session = zenoh.open(router_config(self.listen))
+            self._session = zenoh.open(router_config(self.listen, tls, acl))
         except zenoh.ZError as err:
             raise RouterError(f"cannot start the Zenoh router on {self.listen}: {err}") from err
 

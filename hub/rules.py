@@ -16,7 +16,6 @@ conditions are read from the hub's read model five times a second. Actions run o
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -49,7 +48,8 @@ from hub.alarms.conditions import SampleCondition
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.commands import CommandService
-from hub.read_model import HubView, ReadModel, to_jsonable
+from hub.read_model import HubView, ReadModel
+from hub.requests import Caller, OperatorQueryable
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.rules")
@@ -225,7 +225,9 @@ class RuleEngine:
         self._pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="rule-actions")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rules", daemon=True)
-        self._queryable: Any = None
+        self.queryable = OperatorQueryable(
+            router, self.keys.hub("rules"), self._answer, site.security, "rules", workers=0
+        )
         self._died: str | None = None
 
     def _trees(self) -> list[Tree]:
@@ -243,14 +245,10 @@ class RuleEngine:
         self._publish()
         self._consumer.start()
         self._thread.start()
-        self._queryable = self.router.session.declare_queryable(
-            self.keys.hub("rules"), self._on_query
-        )
+        self.queryable.start()
 
     def stop(self) -> None:
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
+        self.queryable.stop()
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(5.0)
@@ -452,8 +450,6 @@ class RuleEngine:
     def _publish(self) -> None:
         self.model.put("rules", self.states())
 
-    def _on_query(self, query: Any) -> None:
-        try:
-            query.reply(self.keys.hub("rules"), json.dumps(to_jsonable(self.states())).encode())
-        except Exception:
-            log.exception("answering a rules request failed")
+    def _answer(self, raw: bytes, caller: Caller | None) -> dict[str, Any]:
+        """``hub/rules``: every rule's and interlock's state (read only: any operator)."""
+        return self.states()

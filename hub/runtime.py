@@ -91,7 +91,7 @@ class HubRuntime:
         self.refused = RefusedKeys(self.bus, self.model)
 
         self.feed = BatchFeed()
-        self.router = Router(self.listen)
+        self.router = Router(self.listen, site)
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(
             self.router, site, self.data_dir, self.bus, self.model, self.refused, self.feed
@@ -113,7 +113,7 @@ class HubRuntime:
             notifier=self.notifier,
             snapshot=self.snapshot,
         )
-        self.alarm_requests = AlarmRequests(self.router, self.keys, self.supervisor)
+        self.alarm_requests = AlarmRequests(self.router, self.keys, self.supervisor, site.security)
         self.commands = CommandService(
             self.router, site, self.bus, self.model, self.recorder, self.snapshot
         )
@@ -148,9 +148,10 @@ class HubRuntime:
             self.recorder,
             self.snapshot,
             self.snapshots.snapshot if self.snapshots is not None else None,
+            site.security,
         )
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
-        self.status = StatusService(self.router, self.keys, self.snapshot)
+        self.status = StatusService(self.router, self.keys, self.snapshot, site.security)
         self.dashboard = (
             WebService(
                 site,

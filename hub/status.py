@@ -10,8 +10,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from edge.config.security import SecurityConfig
 from edge.keys import SiteKeys
 from hub.read_model import HubView, to_jsonable
+from hub.requests import Caller, OperatorQueryable
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.hub")
@@ -24,27 +26,32 @@ def view_json(view: HubView) -> bytes:
 class StatusService:
     name = "status"
 
-    def __init__(self, router: Router, keys: SiteKeys, snapshot: Callable[[], HubView]) -> None:
+    def __init__(
+        self,
+        router: Router,
+        keys: SiteKeys,
+        snapshot: Callable[[], HubView],
+        security: SecurityConfig | None = None,
+    ) -> None:
         self.router = router
         self.key = keys.hub("status")
         self.snapshot = snapshot
-        self._queryable: Any = None
         self.answered = 0
+        # Answered in the Zenoh callback: a snapshot is a few reference copies.
+        self.queryable = OperatorQueryable(
+            router, self.key, self._answer, security, "status", workers=0
+        )
 
     def start(self) -> None:
-        self._queryable = self.router.session.declare_queryable(self.key, self._on_query)
+        self.queryable.start()
 
-    def _on_query(self, query: Any) -> None:
-        try:
-            query.reply(self.key, view_json(self.snapshot()))
-            self.answered += 1
-        except Exception:  # a query must never take the service down
-            log.exception("answering a status query failed")
+    def _answer(self, raw: bytes, caller: Caller | None) -> dict[str, Any]:
+        self.answered += 1
+        out: dict[str, Any] = to_jsonable(self.snapshot())
+        return out
 
     def stop(self) -> None:
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
+        self.queryable.stop()
 
     def failure(self) -> str | None:
         return None

@@ -13,6 +13,7 @@ from edge.config.alarms import AlarmName, AlarmSpec, alarm_names
 from edge.config.control import RuleConfig, RuleName, referenced
 from edge.config.hub import HubConfig
 from edge.config.node import NodeConfig
+from edge.config.security import SecurityConfig
 from edge.schema import NAME, NodeName, Strict
 
 
@@ -27,6 +28,23 @@ class SiteConfig(Strict):
     """The site's own alarms (`edge.config.alarms`); universal ones: `hub.universal_alarms`."""
     rules: dict[RuleName, RuleConfig] = {}
     """Control rules evaluated on the hub (`edge.config.control`)."""
+    security: SecurityConfig = SecurityConfig()
+    """Mutual TLS and access control (`edge.config.security`)."""
+
+    @model_validator(mode="after")
+    def _tls_everywhere(self) -> SiteConfig:
+        if not self.security.tls:
+            return self
+        links = [(f"hub.listen[{i}]", e) for i, e in enumerate(self.hub.listen)]
+        for node, cfg in self.nodes.items():
+            links += [(f"nodes.{node}.connect[{i}]", e) for i, e in enumerate(cfg.connect or [])]
+        for where, endpoint in links:
+            if not endpoint.startswith("tls/"):
+                raise ValueError(
+                    f"{where}: {endpoint!r} is not tls/HOST:PORT, and security.tls is on "
+                    f"(every link is mutual TLS: write tls/{endpoint.partition('/')[2]})"
+                )
+        return self
 
     @model_validator(mode="after")
     def _alarms_watch_what_exists(self) -> SiteConfig:

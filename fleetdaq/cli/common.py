@@ -55,16 +55,43 @@ def setup_logging(verbose: bool) -> None:
     )
 
 
-def open_client(endpoints: list[str], timeout_ms: int = 3000) -> Any:
-    """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable."""
+def open_client(
+    endpoints: list[str], timeout_ms: int = 3000, site: SiteConfig | None = None
+) -> Any:
+    """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable.
+    With the site's `security.tls`, the operator's certificate (`edge.security.operator_tls`)."""
     import zenoh
 
     from edge.zenoh_session import client_config
 
+    tls = None
+    if site is not None and site.security.tls:
+        from edge.security import SecretFileError, operator_tls
+
+        try:
+            tls = operator_tls(Path(site.security.pki_dir))
+        except SecretFileError as err:
+            fail(f"security.tls is on, but {err} (set FLEETDAQ_CERT and FLEETDAQ_KEY)", 2)
     try:
-        return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms))
+        return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms, tls=tls))
     except zenoh.ZError as err:
-        fail(f"cannot reach the hub at {', '.join(endpoints)}: {err}", 2)
+        hint = " (is your certificate from this site's CA?)" if tls is not None else ""
+        fail(f"cannot reach the hub at {', '.join(endpoints)}: {err}{hint}", 2)
+
+
+def operator_key(site: SiteConfig, what: str) -> str:
+    """The key of the hub's service `what` for this operator: ``.../hub/<what>``, or with
+    security on ``.../hub/<what>/by/<name>``, the name in this operator's certificate (the
+    router lets a certificate ask only under its own name)."""
+    from edge.keys import SiteKeys
+
+    key = SiteKeys(site.site).hub(what)
+    if not site.security.tls:
+        return key
+    from edge.security import operator_tls
+    from fleetdaq.pki import operator_name
+
+    return f"{key}/by/{operator_name(operator_tls(Path(site.security.pki_dir)).cert)}"
 
 
 def hub_request(
@@ -78,18 +105,43 @@ def hub_request(
     exit 2 when no hub answers."""
     import json
 
-    from edge.keys import SiteKeys
-
     site = load_site(config)
     endpoints = list(connect) or list(site.hub.listen)
-    session = open_client(endpoints)
+    session = open_client(endpoints, site=site)
     payload = json.dumps(body).encode() if body is not None else None
     try:
-        key = SiteKeys(site.site).hub(what)
+        try:
+            key = operator_key(site, what)
+        except ValueError as err:  # SecretFileError, PkiError: which file, and why
+            fail(f"security.tls is on, but {err}", 2)
         for reply in session.get(key, payload=payload, timeout=timeout):
             if reply.ok is not None:
                 out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
                 return out
     finally:
         session.close()
-    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s (is it running?)", 2)
+    why = (
+        "is it running, and does security.operators give your certificate this request?"
+        if site.security.tls
+        else "is it running?"
+    )
+    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why})", 2)
+
+
+def check_tls(config: str | Path, site: SiteConfig, who: str) -> None:
+    """With `security.tls` on, the files `who` (``hub``, a node's name, ``operator``) needs:
+    missing, or a key others may read -> one line and exit 2."""
+    if not site.security.tls:
+        return
+    from edge.security import SecretFileError, hub_tls, node_tls, operator_tls
+
+    pki = Path(site.security.pki_dir)
+    try:
+        if who == "hub":
+            hub_tls(pki)
+        elif who == "operator":
+            operator_tls(pki)
+        else:
+            node_tls(pki, who)
+    except SecretFileError as err:
+        fail(f"{config}: security.tls is on, but {err}", 2)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, setup_logging, stop_on_signals
+from fleetdaq.cli.common import check_tls, fail, load_site, setup_logging, stop_on_signals
 
 
 @click.command()
@@ -38,6 +38,7 @@ def edge(
                 check_endpoint(endpoint)
             except ValueError as err:
                 fail(f"--connect: {err}")
+    check_tls(config, site, node)
     setup_logging(verbose)
     from edge.agent import EdgeAgent
     from edge.errors import DriverError

@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, setup_logging, stop_on_signals
+from fleetdaq.cli.common import check_tls, fail, load_site, setup_logging, stop_on_signals
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -58,6 +58,7 @@ def hub(
     from hub.errors import HubError, RouterError, SecretError
     from hub.runtime import HubRuntime
 
+    check_tls(config, site, "hub")
     runtime = HubRuntime(site, Path(data_dir) if data_dir else None, list(listen) or None)
     code = 0
     try:

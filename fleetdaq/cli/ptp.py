@@ -7,7 +7,7 @@ import sys
 
 import click
 
-from fleetdaq.cli.common import fail, load_site, open_client
+from fleetdaq.cli.common import fail, hub_request, load_site
 
 
 @click.group()
@@ -105,19 +105,9 @@ def ptp_status(
 def ptp_fleet(config: str, as_json: bool, connect: tuple[str, ...], timeout: float) -> None:
     """Every node's clock, as the hub sees it. Exit 0 when every node is LOCKED on one
     grandmaster, 1 on warnings (holdover), 2 on failures (or no hub)."""
-    from edge.keys import SiteKeys
     from hub.fleet_time import FleetView
-    from hub.status import query_status
 
-    site = load_site(config)
-    endpoints = list(connect) or list(site.hub.listen)
-    session = open_client(endpoints)
-    try:
-        status = query_status(session, SiteKeys(site.site), timeout)
-    finally:
-        session.close()
-    if status is None:
-        fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s", 2)
+    status = hub_request(config, connect, "status", None, timeout)
     view = FleetView.from_dict(status.get("fleet") or {"nodes": []})
     alive = {n["node"] for n in status.get("nodes", []) if n.get("alive")}
     silent = sorted(alive - {n.node for n in view.nodes})

@@ -15,10 +15,12 @@ import json
 import logging
 from typing import Any
 
+from edge.config.security import SecurityConfig
 from edge.keys import SiteKeys
 from hub.alarms.states import UNACKED, State
 from hub.alarms.supervisor import Supervisor
 from hub.read_model import to_jsonable
+from hub.requests import BadRequest, Caller, RequestService, as_caller
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.alarms")
@@ -26,10 +28,6 @@ log = logging.getLogger("fleetdaq.alarms")
 ACTIONS = ("list", "ack", "shelve", "unshelve", "disable", "enable")
 MAX_REQUEST_BYTES = 64 * 1024
 MAX_SHELVE_S = 30 * 24 * 3600.0
-
-
-class BadRequest(ValueError):
-    pass
 
 
 def _text(req: dict[str, Any], key: str, limit: int = 500) -> str:
@@ -79,29 +77,27 @@ def parse_request(raw: bytes) -> dict[str, Any]:
     }
 
 
-class AlarmRequests:
+class AlarmRequests(RequestService):
     name = "alarm-requests"
 
-    def __init__(self, router: Router, keys: SiteKeys, supervisor: Supervisor) -> None:
-        self.router = router
-        self.key = keys.hub("alarms")
+    def __init__(
+        self,
+        router: Router,
+        keys: SiteKeys,
+        supervisor: Supervisor,
+        security: SecurityConfig | None = None,
+    ) -> None:
+        # Answered in the Zenoh callback: an alarm action takes the supervisor's lock, no I/O
+        # but the journal's fsync.
+        super().__init__(router, keys.hub("alarms"), workers=1, security=security)
         self.supervisor = supervisor
-        self._queryable: Any = None
 
-    def start(self) -> None:
-        self._queryable = self.router.session.declare_queryable(self.key, self._on_query)
-
-    def stop(self) -> None:
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
-
-    def failure(self) -> str | None:
-        return None
-
-    def handle(self, raw: bytes) -> dict[str, Any]:
+    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         try:
             req = parse_request(raw)
+            refused = as_caller(req, caller, req["action"], ("list",))
+            if refused:
+                raise BadRequest(refused)
         except BadRequest as err:
             return {"ok": False, "error": str(err), "results": [], "alarms": []}
         sup = self.supervisor
@@ -159,12 +155,3 @@ class AlarmRequests:
             views = [a.view() for a in self.supervisor.alarms.values()]
         out: list[Any] = to_jsonable(views)
         return out
-
-    def _on_query(self, query: Any) -> None:
-        try:
-            payload = query.payload
-            raw = payload.to_bytes() if payload is not None else b""
-            reply = self.handle(raw)
-            query.reply(self.key, json.dumps(to_jsonable(reply)).encode())
-        except Exception:  # a request must never take the service down
-            log.exception("answering an alarm request failed")

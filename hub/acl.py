@@ -1,0 +1,93 @@
+"""The hub router's access control list, generated from the site file (`security:`), default
+deny. Subjects are certificate common names (mutual TLS); the hub's own session is the router
+itself and is not filtered.
+
+| who (certificate CN)  | may                                                                   |
+|-----------------------|-----------------------------------------------------------------------|
+| a node N (``N``)      | publish under its own keys (data, health, events), hold its own       |
+|                       | liveliness token, receive its own acks and the hub heartbeat, answer  |
+|                       | commands to its own outputs                                           |
+| an operator (``operator:NAME``) | ask the hub's services on keys ending ``/by/NAME`` (the hub |
+|                       | takes NAME from the key as the user: the certificate says who asked); |
+|                       | the view role: status, rules, alarms, outputs and recorder requests,  |
+|                       | the hub refusing every action; control: all of them                   |
+| anyone else           | nothing                                                               |
+
+A node cannot publish another's data, forge its acks or its liveliness, command an output, or
+query the hub; an operator cannot publish anything. Rules that must hold for the messages the
+router forwards to a client (egress) are granted only on the client's own keys.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from edge.config.site import SiteConfig
+from edge.keys import SiteKeys
+from edge.security import OPERATOR_CN_PREFIX
+
+OPERATOR_SERVICES = ("status", "rules", "alarms", "out", "recorder")
+"""The hub services an operator may ask (``hub/<service>/by/<name>``)."""
+
+
+def by(keys: SiteKeys, service: str, name: str) -> str:
+    """The key an operator's request goes to: the hub reads who asked from it."""
+    return f"{keys.hub(service)}/by/{name}"
+
+
+def _rule(rid: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
+    return {
+        "id": rid,
+        "permission": "allow",
+        "flows": flows,
+        "messages": messages,
+        "key_exprs": key_exprs,
+    }
+
+
+def access_control(site: SiteConfig) -> dict[str, Any]:
+    """Zenoh's ``access_control`` section for the hub's router."""
+    keys = SiteKeys(site.site)
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    # The hub's subscriptions as it declares them (wildcards over every node): a node's
+    # publisher learns of them, or its client session would not send at all. The router
+    # checks a declaration by its whole key expression, so the wildcard itself is allowed.
+    hub_subscriptions = [keys.all_data, keys.all_health, keys.all_events]
+    for node in site.nodes:
+        own = [keys.data(node, "*"), keys.health(node), keys.events(node)]
+        acks = keys.acks_of(node)
+        heartbeat = keys.hub("heartbeat")
+        outs = keys.outs_of(node)
+        ids = [f"{node}:{part}" for part in ("publish", "receive", "alive", "outputs")]
+        rules += [
+            # Its own data, health and events, and the hub's subscriptions (so its publishers
+            # see that the hub listens).
+            _rule(ids[0], ["ingress"], ["put", "delete"], own),
+            _rule(ids[0] + "-matching", ["egress"], ["declare_subscriber"], hub_subscriptions),
+            # Its acks and the heartbeat.
+            _rule(ids[1], ["ingress"], ["declare_subscriber"], [acks, heartbeat]),
+            _rule(ids[1] + "-forwarded", ["egress"], ["put"], [acks, heartbeat]),
+            _rule(ids[2], ["ingress"], ["liveliness_token"], [keys.alive(node)]),
+            # Commands to its outputs: the hub asks, it answers.
+            _rule(ids[3], ["ingress"], ["declare_queryable", "reply"], [outs]),
+            _rule(ids[3] + "-asked", ["egress"], ["query"], [outs]),
+        ]
+        subjects.append({"id": f"node:{node}", "cert_common_names": [node]})
+        policies.append({"rules": [r["id"] for r in rules[-7:]], "subjects": [f"node:{node}"]})
+    for name in sorted(site.security.operators):
+        rid = f"operator:{name}:ask"
+        services = [by(keys, s, name) for s in OPERATOR_SERVICES]
+        rules.append(_rule(rid, ["ingress"], ["query"], services))
+        rules.append(_rule(rid + "-answered", ["egress"], ["reply"], services))
+        sid = f"operator:{name}"
+        subjects.append({"id": sid, "cert_common_names": [OPERATOR_CN_PREFIX + name]})
+        policies.append({"rules": [rid, rid + "-answered"], "subjects": [sid]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
