@@ -43,6 +43,7 @@ import edge  # noqa: F401
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import queue
@@ -118,7 +119,14 @@ def publisher_main(
     node = node_name(index)
     cfg = t8_stream(parse_config(yaml_text, "<bench>"), node)
     pool = PayloadPool(cfg, node, args.pool, _seed(index))
-    session: Any = zenoh.open(client_config([ep]))
+    tls = None
+    if args.pki:
+        from edge.security import TlsFiles
+
+        pki = Path(args.pki)
+        stem = pki / "nodes" / node
+        tls = TlsFiles(pki / "ca.crt", stem.with_suffix(".crt"), stem.with_suffix(".key"))
+    session: Any = zenoh.open(client_config([ep], tls=tls))
     pub = session.declare_publisher(
         SiteKeys(SITE).data(node, STREAM),
         congestion_control=zenoh.CongestionControl.BLOCK,
@@ -238,6 +246,11 @@ def run_hub(
     yaml_text = site_yaml(
         args.publishers, port, str(data_dir), args.compression, args.chunk_size, limits
     )
+    if args.pki:  # mutual TLS on every link, the ACL made from the site file
+        ep = ep.replace("tcp/", "tls/", 1)
+        yaml_text = yaml_text.replace(endpoint(port), ep) + (
+            f"security: {{tls: true, pki_dir: {json.dumps(args.pki)}}}\n"
+        )
     site = parse_config(yaml_text, "<bench>")
     ctx = mp.get_context("spawn")
     sh = Shared(
@@ -451,8 +464,18 @@ def main() -> None:
         action="store_false",
         help="skip the informative second raw run into just-freed page cache",
     )
+    ap.add_argument(
+        "--tls-compare",
+        action="store_true",
+        help="run the hub twice, plain TCP then mutual TLS with the ACL (fleetdaq pki), and "
+        "compare throughput and hub CPU per GB (target: TLS >= 0.8 x plain)",
+    )
     args = ap.parse_args()
+    args.pki = None
     exit_on_sigterm()
+    if args.tls_compare:
+        tls_compare(args)
+        return
     log = Progress("record")
     tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-record-"))
     try:
@@ -535,6 +558,67 @@ def main() -> None:
             "hub_overflow_drops": hub.overflow,
             "counts_match": hub.counts_match,
             "cpus": os.cpu_count(),
+        }
+    )
+
+
+TARGET_TLS_RATIO = 0.8
+
+
+def tls_compare(args: argparse.Namespace) -> None:
+    """Plain, then TLS, then plain again (a neighbour's load falls on both alike): throughput
+    while publishing and hub CPU per GB."""
+    from fleetdaq.pki import init, issue_node
+
+    log = Progress("record-tls")
+    runs: dict[str, list[HubRun]] = {"plain": [], "tls": []}
+    for mode in ("plain", "tls", "plain", "tls"):
+        tmp = Path(tempfile.mkdtemp(prefix=f"fleetdaq-bench-record-{mode}-"))
+        try:
+            args.pki = None
+            if mode == "tls":
+                init(tmp / "pki", SITE, ["127.0.0.1"])
+                for i in range(args.publishers):
+                    issue_node(tmp / "pki", node_name(i))
+                args.pki = str(tmp / "pki")
+            run = run_hub(args, tmp, log)
+            mb_s = run.recorded_while_publishing * run.payload_bytes / 1e6 / run.publish_s
+            log(f"{mode}: {mb_s:.0f} MB/s, hub {run.hub_cpu_s / (run.bytes / 1e9):.2f} CPU-s/GB, "
+                f"gaps {run.gaps}")  # fmt: skip
+            runs[mode].append(run)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def figures(rs: list[HubRun]) -> dict[str, float]:
+        recorded = sum(r.recorded_while_publishing * r.payload_bytes for r in rs)
+        seconds = sum(r.publish_s for r in rs)
+        return {
+            "mb_per_s": rounded(recorded / 1e6 / seconds),
+            "hub_cpu_s_per_gb": rounded(
+                sum(r.hub_cpu_s for r in rs) / (sum(r.bytes for r in rs) / 1e9)
+            ),
+            "gaps": sum(r.gaps for r in rs),
+        }
+
+    plain, tls = figures(runs["plain"]), figures(runs["tls"])
+    ratio = tls["mb_per_s"] / plain["mb_per_s"]
+    cpu_ratio = tls["hub_cpu_s_per_gb"] / plain["hub_cpu_s_per_gb"]
+    log(f"TLS / plain: throughput {ratio:.2f}x, hub CPU per GB {cpu_ratio:.2f}x")
+    emit(
+        {
+            "bench": "record-tls",
+            "publishers": args.publishers,
+            "figures": {
+                "plain": plain,
+                "tls": tls,
+                "throughput_ratio": rounded(ratio),
+                "hub_cpu_per_gb_ratio": rounded(cpu_ratio),
+            },
+            "targets": {"throughput_ratio": TARGET_TLS_RATIO},
+            "met": {
+                "throughput_ratio": ratio >= TARGET_TLS_RATIO,
+                "gaps": plain["gaps"] == 0 and tls["gaps"] == 0,
+            },
         }
     )
 

@@ -87,6 +87,7 @@ class WebService:
     def start(self) -> None:
         if self._running:
             return
+        self.users.check()
         self._pool = ThreadPoolExecutor(4, thread_name_prefix="dashboard-work")
         self._ready.clear()
         self._error = None

@@ -155,14 +155,33 @@ class UsersFile:
             log.error("cannot read the dashboard users file %s: %s", self.path, err)
             return {}
         if mode & 0o077:
-            log.warning(
-                "%s is readable by others (mode %o): chmod 600 it", self.path, mode
-            )  # fmt: skip
+            log.error(
+                "the dashboard users file %s is refused: group or others may access it "
+                "(mode %04o); run: chmod 600 %s. Nobody can log in until then.",
+                self.path,
+                mode,
+                self.path,
+            )
+            return {}
         users, problems = parse_users(text, str(self.path))
         for p in problems:
             log.error("%s", p)
         log.info("dashboard users: %d from %s", len(users), self.path)
         return users
+
+    def check(self) -> None:
+        """At start: a file others may read is refused with one line (UsersFileError)."""
+        try:
+            mode = stat.S_IMODE(self.path.stat().st_mode)
+        except FileNotFoundError:
+            return
+        except OSError as err:
+            raise UsersFileError(f"dashboard users file {self.path}: {err}") from err
+        if mode & 0o077:
+            raise UsersFileError(
+                f"dashboard users file {self.path}: group or others may access it (mode "
+                f"{mode:04o}); run: chmod 600 {self.path}"
+            )
 
     def hash_of(self, name: str) -> str | None:
         return self._refresh().get(name)
