@@ -107,3 +107,26 @@ def test_a_ca_key_readable_by_others_is_refused(tmp_path: Path):
     assert "chmod 600" in r.stderr
     with pytest.raises(SecretFileError, match="group or others"):
         check_private_file(d / "ca.key")
+
+
+def test_the_acl_grants_each_node_its_own_keys_only(tmp_path: Path):
+    import json
+
+    r = pki("acl", "--config", str(REPO / "config" / "site.example.yaml"))
+    assert r.returncode == 0, r.stderr
+    acl = json.loads(r.stdout)
+    assert acl["default_permission"] == "deny"
+    rules = {x["id"]: x for x in acl["rules"]}
+    publish = rules["wec-t8:publish"]
+    assert publish["flows"] == ["ingress"]
+    assert all(k.startswith("fleetdaq/wave-test-site/wec-t8/") for k in publish["key_exprs"])
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert subjects["node:wec-t8"] == ["wec-t8"]
+    assert subjects["operator:ann"] == ["operator:ann"]
+    ann = rules["operator:ann:ask"]
+    assert ann["messages"] == ["query"]
+    assert all(k.endswith("/by/ann") for k in ann["key_exprs"])
+    for policy in acl["policies"]:
+        (subject,) = policy["subjects"]
+        name = subject.split(":", 1)[1]
+        assert all(rid.startswith(f"{name}:") or rid.startswith(subject) for rid in policy["rules"])

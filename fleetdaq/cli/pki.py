@@ -119,3 +119,15 @@ def list_certs(folder: Path) -> None:
         mark = "" if c.issued_by_site_ca else "  NOT ISSUED BY THIS CA"
         role = f" role={c.role}" if c.role else ""
         click.echo(f"{c.cn:30} until {c.not_after:%Y-%m-%d}{role}  {c.path}{mark}")
+
+
+@pki.command("acl")
+@click.option("--config", "config", required=True, type=click.Path(), help="Site file.")
+def acl(config: str) -> None:
+    """The hub router's access control list made from the site file (JSON): what each
+    certificate may do once security.tls is on."""
+    import json
+
+    from hub.acl import access_control
+
+    click.echo(json.dumps(access_control(load_site(config)), indent=2))
