@@ -362,16 +362,25 @@ def test_demo_config_path_is_the_shipped_demo_file() -> None:
 def test_site_example_describes_a_wave_energy_site_with_three_edges() -> None:
     site = load_config(REPO / "config" / "site.example.yaml")
     assert set(site.nodes) == {"wec-t8", "am-cell", "env"}
-    assert site.hub.listen == ["tcp/0.0.0.0:7447"]
+    assert site.hub.listen == ["tls/0.0.0.0:7447"]
+    assert site.security.tls
+    assert site.security.operators
     assert site.hub.data_dir == "/var/lib/fleetdaq/data"
     recorder = site.hub.recorder
     assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, 2_000_000_000)
     assert recorder.include != ["*"]
     assert recorder.exclude
     for name, node in site.nodes.items():
-        assert node.connect == ["tcp/hub.example:7447"], name
+        assert node.connect == ["tls/hub.example:7447"], name
     t8 = site.nodes["wec-t8"].streams["t8"]
     assert len(t8.channels) == 8
     assert 10_000 <= t8.rate_hz <= 40_000
     assert all(s.rate_hz == 4 for s in site.nodes["am-cell"].streams.values())
     assert site.nodes["env"].streams["air"].rate_hz == 1
+
+
+def test_with_security_on_every_endpoint_must_be_tls() -> None:
+    text = (REPO / "config" / "site.example.yaml").read_text()
+    bad = text.replace("      - tls/hub.example:7447", "      - tcp/hub.example:7447", 1)
+    with pytest.raises(ConfigError, match=r"nodes\.wec-t8\.connect\[0\].*tls/hub\.example:7447"):
+        parse_config(bad, "site.yaml")
