@@ -38,6 +38,7 @@ from edge.paths import default_spool_dir
 from edge.security import SecretFileError, TlsFiles, node_tls
 from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
+from edge.systemd import Systemd
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
 from edge.wire import decode_u64
 from edge.zenoh_session import client_config
@@ -60,6 +61,9 @@ class EdgeAgent:
         self.site = site
         self.node = node
         self.endpoints = endpoints or site.endpoints_for(node)
+        self.systemd = Systemd()
+        """systemd's READY, STATUS and watchdog (each acquisition loop must keep moving)."""
+        self.systemd.status_of = self.status_line
         self.tls: TlsFiles | None = None
         if site.security.tls:
             try:
@@ -147,6 +151,8 @@ class EdgeAgent:
             lambda level, tag, msg: events.emit(level, "display", tag, msg),
         )
         self.started_ns = time.time_ns()
+        for loop in self.loops:
+            self.systemd.beats.append(loop.beat)
         outputs.start()
         for loop in self.loops:
             loop.start()
@@ -161,6 +167,15 @@ class EdgeAgent:
             f"connecting to {self.endpoints}",
         )
         self._connector.start()
+        # Acquiring (into the spool, whether or not the hub is reachable yet): ready.
+        self.systemd.ready(self.status_line())
+
+    def status_line(self) -> str:
+        """What `systemctl status` shows: streams, the hub link, what the spool holds."""
+        spool = sum(loop.spool.bytes for loop in self.loops) / 1e6
+        linked = "hub connected" if self._session is not None else "hub not reachable"
+        streams = ", ".join(f"{loop.name} {loop.counters.batches} batches" for loop in self.loops)
+        return f"node {self.node}: {streams}; {linked}; spool {spool:.1f} MB"
 
     def latest_value(self, stream: str, channel: str) -> float | None:
         """The newest value of `stream`/`channel` on this node, None before the first batch."""
@@ -289,6 +304,7 @@ class EdgeAgent:
         if not self._started or self._closed:
             return
         self._closed = True
+        self.systemd.stopping(f"node {self.node}: stopping, outputs to their safe values")
         self._stop.set()
         try:
             for display in self.displays:

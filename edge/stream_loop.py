@@ -27,6 +27,7 @@ from edge.errors import DriverError
 from edge.event_publisher import EventPublisher
 from edge.keys import SiteKeys
 from edge.spool import StreamSpool
+from edge.systemd import Beat
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
 from edge.wire import BatchEncoder, encode_u64
 
@@ -41,6 +42,10 @@ class StreamCounters:
     read_errors: int = 0
     next_sequence: int = 0
     replayed: int = 0
+
+
+OPEN_QUIET_S = 30.0
+"""How long opening a device may legitimately keep the loop quiet (the watchdog's view)."""
 
 
 class StreamLoop:
@@ -94,6 +99,8 @@ class StreamLoop:
         self.subscriber_timeout_s = 3.0
         self.hub_unreachable = threading.Event()
         """Set by the agent when its first attempt to reach the hub failed."""
+        self.beat = Beat(f"acquisition of {name}")
+        """Shows the loop is alive: the agent hands it to systemd's watchdog (`edge.systemd`)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
         self._replayer = threading.Thread(target=self._replay, name=f"replay-{name}", daemon=True)
@@ -164,9 +171,12 @@ class StreamLoop:
 
     def _run(self) -> None:
         backoff = 0.5
+        beat = self.beat
+        beat.quiet(self.subscriber_timeout_s + OPEN_QUIET_S)
         self.wait_for_subscriber(self.subscriber_timeout_s)
         while not self._stop.is_set():
             try:
+                beat.quiet(OPEN_QUIET_S)  # opening a device may take its time (LJM's timeout)
                 self.driver.open()
                 backoff = 0.5
                 self._acquire()
@@ -181,6 +191,7 @@ class StreamLoop:
                     f"driver failed, retrying in {backoff:g} s: {err}",
                 )
                 with_close(self.driver)
+                beat.quiet(backoff + OPEN_QUIET_S)
                 if self._stop.wait(backoff):
                     break
                 backoff = min(backoff * 2, 30.0)
@@ -188,7 +199,9 @@ class StreamLoop:
     def _acquire(self) -> None:
         index = 0  # scans acquired since this open; sequence numbers continue across reopen
         c = self.counters
+        beat = self.beat.beat
         while not self._stop.is_set():
+            beat()
             block = self.driver.read()
             scans = block.raw.shape[0]
             values = self._engineering(block.raw)

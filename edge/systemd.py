@@ -68,6 +68,8 @@ class Systemd:
         self.sent: list[str] = []
         """The last messages sent (kept short), for tests and `fleetdaq` diagnostics."""
         self.stalled: str | None = None
+        self.ticks = 0
+        """Watchdog periods gone by (each one a ping, or none when a loop stalled)."""
         self._sock: socket.socket | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -124,6 +126,7 @@ class Systemd:
         period = self.watchdog_s / 3 if self.watchdog_s else 5.0
         last_status = 0.0
         while not self._stop.wait(period):
+            self.ticks += 1
             stalled = self.check()
             if stalled is not None:
                 if stalled != self.stalled:  # withhold the ping: systemd restarts us

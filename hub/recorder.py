@@ -36,6 +36,7 @@ from edge.config.site import SiteConfig, effective_yaml
 from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import EVENT_TYPE, Event
+from edge.systemd import Beat
 from edge.wire import decode_u64, encode_u64, plausible_time, read_header
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -95,6 +96,8 @@ class Recorder:
         self.feed = feed or BatchFeed()
         self._bytes_before = 0
         """Bytes of the sessions before the current one (stop and start make a new one)."""
+        self.beat = Beat("recorder writer")
+        """Shows the writer loop moves (at least every 0.2 s): systemd's watchdog watches it."""
         self.tap: Tap | None = None
         """Also handed every message recorded besides batches (the snapshot buffer), on the
         writer thread, whether or not the recorder is recording. Must be quick."""
@@ -254,7 +257,9 @@ class Recorder:
     def _writer_loop(self) -> None:
         get = self._queue.get
         interval = self.cfg.flush_interval_s
+        beat = self.beat.beat
         while True:
+            beat()
             try:
                 item = get(timeout=min(0.2, interval))
             except queue.Empty:

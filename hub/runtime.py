@@ -28,6 +28,7 @@ from typing import Any
 from edge.config.site import SiteConfig
 from edge.keys import SiteKeys
 from edge.paths import default_data_dir
+from edge.systemd import Systemd
 from hub.alarms.requests import AlarmRequests
 from hub.alarms.supervisor import Supervisor
 from hub.batch_feed import BatchFeed
@@ -192,6 +193,8 @@ class HubRuntime:
             ]
         )
         self.started = False
+        self.systemd = Systemd()
+        """systemd's READY, STATUS and watchdog (the recorder's writer must keep moving)."""
 
     def _record_action(self, action: str, who: str) -> str:
         """A rule's `record:` action."""
@@ -223,6 +226,9 @@ class HubRuntime:
         """Start every service; on failure (or Ctrl-C) part-way, stop what had started."""
         self.services.start()
         self.started = True
+        self.systemd.beats.append(self.recorder.beat)
+        self.systemd.status_of = self.status_line
+        self.systemd.ready(self.status_line())
         session = self.recorder.session
         assert session is not None
         self.bus.emit(
@@ -240,8 +246,21 @@ class HubRuntime:
             session.dir,
         )
 
+    def status_line(self) -> str:
+        """What `systemctl status` shows."""
+        view = self.snapshot()
+        r = view.recorder
+        alive = sum(n.alive for n in view.nodes)
+        active = sum(a.active for a in view.alarms)
+        return (
+            f"{r.state} {r.session or '-'}, {r.bytes_written / 1e9:.2f} GB written; "
+            f"{alive}/{len(view.nodes)} nodes alive; {active} alarm(s) active"
+        )
+
     def close(self) -> None:
         """Stop every service, newest first. Idempotent."""
+        if self.started:
+            self.systemd.stopping("stopping: closing files")
         self.services.stop()
         self.refused.publish()
 
