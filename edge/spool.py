@@ -16,10 +16,14 @@ import logging
 import os
 import struct
 import threading
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+
+try:  # ISA-L: the CRC-32 zlib computes (same values, same files), ~3x faster with PCLMUL/PMULL
+    from isal.isal_zlib import crc32
+except ImportError:  # pragma: no cover - isal is a dependency; a platform without a wheel
+    from zlib import crc32
 
 log = logging.getLogger("fleetdaq.spool")
 
@@ -146,7 +150,7 @@ class StreamSpool:
 
     def append(self, seq: int, time_ns: int, payload: bytes | bytearray) -> list[Dropped]:
         """Write one batch (before it is published). Returns what the limits made it drop."""
-        header = _HEADER.pack(_MAGIC, seq, time_ns, len(payload), zlib.crc32(payload))
+        header = _HEADER.pack(_MAGIC, seq, time_ns, len(payload), crc32(payload))
         with self._lock:
             seg = self._segments[-1] if self._segments else None
             if self._fd is None or seg is None or seg.bytes >= self.segment_bytes:
@@ -273,7 +277,7 @@ class StreamSpool:
                         if s > until:
                             return
                         payload = fh.read(length)
-                        if len(payload) < length or zlib.crc32(payload) != crc:
+                        if len(payload) < length or crc32(payload) != crc:
                             break
                         yield s, t, payload
             except FileNotFoundError:
@@ -304,7 +308,7 @@ def _scan_segment(path: Path) -> tuple[_Segment | None, int, int]:
             if magic != _MAGIC or pos + HEADER_SIZE + length > size:
                 break
             payload = fh.read(length)
-            if zlib.crc32(payload) != crc:
+            if crc32(payload) != crc:
                 break
             pos += HEADER_SIZE + length
             if seg is None:

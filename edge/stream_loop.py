@@ -82,12 +82,14 @@ class StreamLoop:
         """The newest scan in engineering units (what displays show)."""
         self.batch_hooks: list[Callable[[npt.NDArray[np.float64]], None]] = []
         """Called with every batch's (scans, channels) engineering values, NaN where invalid,
-        on this stream's thread before the batch is spooled: the edge interlocks."""
+        on this stream's thread before the batch is spooled: the edge interlocks. The array is
+        reused for the next batch: a hook copies what it keeps."""
         self._hook_failed = False
         self.scale = np.array([ch.scale for ch in cfg.channels])
         self.offset = np.array([ch.offset for ch in cfg.channels])
         self._tiled_scale: npt.NDArray[np.float64] = np.empty(0)
         self._tiled_offset: npt.NDArray[np.float64] = np.empty(0)
+        self._scratch: npt.NDArray[np.float64] = np.empty(0)
         self.time_fit = DeviceTimeFit(cfg.rate_hz)
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.time_sync: TimeSyncMonitor = NoTimeSyncMonitor()
@@ -211,7 +213,7 @@ class StreamLoop:
                 c.invalid_samples += int(bad.sum())
             for hook in self.batch_hooks:
                 self._run_hook(hook, values)
-            self.latest = values[-1]
+            self.latest = values[-1].copy()  # `values` is reused by the next batch
             for ev in block.events:
                 self.events.emit(ev.level, self.name, ev.tag, ev.message, **dict(ev.fields))
             self.time_fit.observe(index + scans - 1, block.host_ns, block.device_ns)
@@ -264,7 +266,10 @@ class StreamLoop:
             scans = raw.shape[0]
             self._tiled_scale = np.tile(self.scale, scans)
             self._tiled_offset = np.tile(self.offset, scans)
-        flat = raw.reshape(-1) * self._tiled_scale
+            self._scratch = np.empty(raw.size)
+        # Into one buffer kept across batches: a fresh 256 KB array per T8 batch costs page
+        # faults. Its users (hooks, the encoder) are done with it before the next read.
+        flat = np.multiply(raw.reshape(-1), self._tiled_scale, out=self._scratch)
         flat += self._tiled_offset
         return flat.reshape(raw.shape)
 
