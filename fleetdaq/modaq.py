@@ -7,10 +7,12 @@ What MODAQ 2's nodes declare, and where it goes:
 - ``BagRecorder``: ``dataFolder`` -> ``hub.data_dir``; ``fileDuration`` (s) ->
   ``hub.recorder.file_duration_s``; ``loggedTopics`` -> ``hub.recorder.include`` (``*``, or the
   streams whose topics are listed; other topics are named in a comment).
-- ``M2Supervisor``: ``loggerPath``, ``loggerLimitBytes``, ``emailSendAddr``, ``emailGroup1``/
-  ``2``, ``analyzedTopics``, ``topicErrorEmailSnooze`` have no key in the site file yet (the
-  hub's events.log is fixed at 10 MB x 5; e-mail and per-tag snooze belong to the supervisor):
-  they are carried over as comments. ``emailSendPwd`` is never copied.
+- ``M2Supervisor``: ``emailSendAddr`` → ``hub.notify.smtp`` (Gmail, MODAQ 2's server, with
+  the password from ``FLEETDAQ_SMTP_PASSWORD``), ``emailGroup1``/``2`` → groups ``group1``/
+  ``group2`` with ``topicErrorEmailSnooze`` as their ``snooze_s``; ``analyzedTopics`` needs no
+  key (the hub watches every stream); ``loggerPath``, ``loggerLimitBytes`` have none (the
+  hub's events.log is fixed at 10 MB x 5). All of them are also listed in a comment.
+  ``emailSendPwd`` is never copied.
 - A LabJack T8 streaming node (``labjack_ain_streamer``: ``IPAddress``, ``SampleRate``,
   ``ScansPerRead``, ``ainTopic`` and, in later versions, ``channelNames``, ``channelUnits``,
   ``channelScales``, ``channelOffsets``) -> a ``labjack_t8`` stream; MODAQ 2 sets
@@ -215,11 +217,12 @@ def _supervisor(imp: _Import, node: str, p: dict[str, Any]) -> None:
     notes = {
         "loggerPath": "the hub writes events to <data_dir>/events.log",
         "loggerLimitBytes": "no key: events.log is rotated at 10 MB, 5 kept",
-        "emailSendAddr": "no key yet: e-mail is the supervisor's notifier",
-        "emailGroup1": "no key yet: the notifier's first group",
-        "emailGroup2": "no key yet: the notifier's second group",
-        "analyzedTopics": "no key needed: the hub counts every stream's gaps and raises events",
-        "topicErrorEmailSnooze": "no key yet: the notifier's per-tag snooze (s)",
+        "emailSendAddr": "hub.notify.smtp (sender and username)",
+        "emailGroup1": "hub.notify.groups.group1",
+        "emailGroup2": "hub.notify.groups.group2",
+        "analyzedTopics": "no key needed: the hub watches every stream (universal alarms"
+        " stream_stale and stream_gaps: hub.universal_alarms)",
+        "topicErrorEmailSnooze": "snooze_s of every e-mail group",
     }
     imp.comments_top.append(f"MODAQ 2 {node} (m2_supervisor) settings, for reference:")
     for key, value in p.items():
@@ -231,6 +234,48 @@ def _supervisor(imp: _Import, node: str, p: dict[str, Any]) -> None:
             continue
         what = notes.get(key, "no equivalent")
         imp.comments_top.append(f"  {key}: {_q(value)}   -> {what}")
+    imp.hub += _notify(node, p)
+
+
+def _notify(node: str, p: dict[str, Any]) -> list[str]:
+    """hub.notify from M2Supervisor's e-mail settings: its sender through Gmail (MODAQ 2's
+    hard-coded server) with the password from the environment, and one group per e-mail group
+    with the per-tag snooze. Addresses the site file would refuse are left in a comment."""
+    groups: list[str] = []
+    for n in (1, 2):
+        key = f"emailGroup{n}"
+        to = [str(a) for a in _list(p, key) if _EMAIL.match(str(a))]
+        bad = [str(a) for a in _list(p, key) if not _EMAIL.match(str(a))]
+        if bad:
+            groups.append(f"# {node}.{key}: not e-mail addresses, left out: {_q(bad)}")
+        if not to:
+            continue
+        groups += [f"group{n}:   # {node}.{key}", f"  to: {_q(to)}"]
+        if "topicErrorEmailSnooze" in p:
+            snooze = _number(p, "topicErrorEmailSnooze", node, 0)
+            groups.append(f"  snooze_s: {snooze:g}   # {node}.topicErrorEmailSnooze")
+    sender = str(p.get("emailSendAddr", ""))
+    if not groups and not sender:
+        return []
+    lines = ["notify:"]
+    if _EMAIL.match(sender):
+        lines += [
+            f"  smtp:   # MODAQ 2 sent as {node}.emailSendAddr through Gmail: check host and port",
+            "    host: smtp.gmail.com",
+            "    port: 587",
+            "    security: starttls",
+            f"    username: {_q(sender)}",
+            "    password_env: FLEETDAQ_SMTP_PASSWORD   # export it for the hub (emailSendPwd)",
+            f"    sender: {_q(sender)}",
+        ]
+    else:
+        lines.append("  # smtp: {host, sender, ...}: nothing is sent until the server is named")
+    if groups:
+        lines += ["  groups:", *(f"    {g}" for g in groups)]
+    return lines
+
+
+_EMAIL = re.compile(r"^[^@\s]+@[^@\s]+\.[^@\s]+$")
 
 
 def import_modaq(

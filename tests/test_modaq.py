@@ -77,6 +77,19 @@ def test_what_has_no_place_is_said_in_comments_and_the_password_is_never_copied(
     assert "not-a-real-password" not in text
 
 
+def test_the_supervisors_e_mail_becomes_notify_groups_with_the_snooze():
+    site = parse_config(_import("m2_config.yaml"), "<x>")
+    notify = site.hub.notify
+    assert notify.smtp is not None
+    assert (notify.smtp.sender, notify.smtp.username) == ("buoy-alerts@example.org",) * 2
+    assert notify.smtp.password_env == "FLEETDAQ_SMTP_PASSWORD"
+    assert {n: g.to for n, g in notify.groups.items()} == {
+        "group1": ["ops@example.org"],
+        "group2": ["team@example.org", "pi@example.org"],
+    }
+    assert {g.snooze_s for g in notify.groups.values()} == {300}
+
+
 def test_the_reference_design_layout_streams_every_input_in_volts():
     site = parse_config(_import("m2_config_rd.yaml", site="buoy-lab", node="controller"), "<x>")
     assert site.site == "buoy-lab"
