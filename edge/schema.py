@@ -138,24 +138,27 @@ class Resolution:
     low: float
     """The lowest value the converter gives."""
     high: float
-    """The highest."""
+    """The highest value it gives (its top code)."""
 
     @classmethod
     def bits(cls, bits: int, low: float, high: float) -> Resolution:
-        """A `bits`-bit converter spanning low..high."""
-        return cls((high - low) / 2**bits, low, high)
+        """A `bits`-bit converter whose 2^bits codes start at `low`, one step apart, the step
+        being (high - low) / 2^bits: ±11 V on 24 bits is -11 V .. 11 V - 1.3 µV."""
+        step = (high - low) / 2**bits
+        return cls(step, low, low + (2**bits - 1) * step)
 
 
 def float32_misfit(res: Resolution, scale: float, offset: float) -> str | None:
     """Why float32 cannot hold this converter's codes in engineering units; None if it can.
 
     The rule: float32 holds a channel when, at the largest engineering value the converter can
-    give (``|raw * scale + offset|`` over its span), float32's step is no coarser than one code
-    in engineering units (``|scale| * step``). Then every code keeps its own float32 value and
-    rounding adds at most half a code. float32's step at a value v in [2^(e-1), 2^e) is
-    2^(e-24) (a 24-bit significand: ~6e-8 of v), so the fit is about relative precision: a
-    24-bit converter over a symmetric range fits exactly, a 19-bit one with room to spare, and
-    any converter fails once an offset makes the values large against one code.
+    give (``|raw * scale + offset|`` over its codes), float32's step is no coarser than one
+    code in engineering units (``|scale| * step``). Then every code keeps its own float32 value
+    and rounding adds at most half a code. float32's step at a value v in [2^(e-1), 2^e) is
+    2^(e-24) (a 24-bit significand: ~6e-8 of v), so the fit is about relative precision: the
+    T8's 24-bit ADC over its ±range fits with a bit to spare (the sign is free), a 19-bit
+    MAX31856 with room, and any converter fails once an offset makes its values large against
+    one code (a T8 channel at ±11 V offset by 100 does).
     """
     code = abs(scale) * res.step
     top = max(abs(res.low * scale + offset), abs(res.high * scale + offset))
@@ -163,7 +166,10 @@ def float32_misfit(res: Resolution, scale: float, offset: float) -> str | None:
         return f"{top:.3g} is beyond float32's range"
     if top == 0 or code == 0:
         return None if top == 0 else "the scale is 0"
-    f32_step = math.ldexp(1.0, math.frexp(top)[1] - 24)
+    mantissa, e = math.frexp(top)
+    if mantissa == 0.5:  # top is 2^(e-1), exact in float32: the codes below it set the step
+        e -= 1
+    f32_step = math.ldexp(1.0, e - 24)
     if f32_step <= code:
         return None
     return (

@@ -49,8 +49,9 @@ class LabJackT8PollStream(StreamBase, T8Connection):
     sim: LabJackT8Sim | None = None
 
     def resolutions(self) -> tuple[Resolution | None, ...]:
-        """AIN: the 24-bit ADC over ±range; a digital line: 0 or 1; a DAC readback: taken as
-        fine as the ADC over the DAC's span (no finer than the value written)."""
+        """AIN: the 24-bit ADC over ±range; a digital line: 0 or 1; a DAC readback (the value
+        written, any float): taken as fine as the ADC over the DAC's -0.1..10 V, which float32
+        does not hold, so a stream with one stays float64."""
 
         def one(ch: T8PollChannel) -> Resolution:
             if ch.source.startswith("AIN"):
