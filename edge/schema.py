@@ -4,7 +4,9 @@ the fields every stream has, and simulated faults."""
 from __future__ import annotations
 
 import ipaddress
+import math
 import re
+from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
@@ -124,6 +126,58 @@ class Channel(Strict):
     offset: Float = 0.0
 
 
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+@dataclass(frozen=True, slots=True)
+class Resolution:
+    """What a channel's converter tells apart, in its raw unit (before scale and offset)."""
+
+    step: float
+    """One code (LSB)."""
+    low: float
+    """The lowest value the converter gives."""
+    high: float
+    """The highest value it gives (its top code)."""
+
+    @classmethod
+    def bits(cls, bits: int, low: float, high: float) -> Resolution:
+        """A `bits`-bit converter whose 2^bits codes start at `low`, one step apart, the step
+        being (high - low) / 2^bits: ±11 V on 24 bits is -11 V .. 11 V - 1.3 µV."""
+        step = (high - low) / 2**bits
+        return cls(step, low, low + (2**bits - 1) * step)
+
+
+def float32_misfit(res: Resolution, scale: float, offset: float) -> str | None:
+    """Why float32 cannot hold this converter's codes in engineering units; None if it can.
+
+    The rule: float32 holds a channel when, at the largest engineering value the converter can
+    give (``|raw * scale + offset|`` over its codes), float32's step is no coarser than one
+    code in engineering units (``|scale| * step``). Then every code keeps its own float32 value
+    and rounding adds at most half a code. float32's step at a value v in [2^(e-1), 2^e) is
+    2^(e-24) (a 24-bit significand: ~6e-8 of v), so the fit is about relative precision: the
+    T8's 24-bit ADC over its ±range fits with a bit to spare (the sign is free), a 19-bit
+    MAX31856 with room, and any converter fails once an offset makes its values large against
+    one code (a T8 channel at ±11 V offset by 100 does).
+    """
+    code = abs(scale) * res.step
+    top = max(abs(res.low * scale + offset), abs(res.high * scale + offset))
+    if top > FLOAT32_MAX:
+        return f"{top:.3g} is beyond float32's range"
+    if top == 0 or code == 0:
+        return None if top == 0 else "the scale is 0"
+    mantissa, e = math.frexp(top)
+    if mantissa == 0.5:  # top is 2^(e-1), exact in float32: the codes below it set the step
+        e -= 1
+    f32_step = math.ldexp(1.0, e - 24)
+    if f32_step <= code:
+        return None
+    return (
+        f"one code of its converter is {code:.3g} at values up to {top:.6g} (after scale and "
+        f"offset), where float32 steps {f32_step:.3g}"
+    )
+
+
 class StreamBase(Strict):
     """What every stream has, whatever its driver. Each driver's schema extends this."""
 
@@ -134,6 +188,28 @@ class StreamBase(Strict):
     scans_per_batch: Annotated[Int, Field(ge=1, le=1_000_000)] | None = None
     """Scans in one published batch; default ≈ 100 ms of data (at least 1 scan)."""
     channels: Annotated[list[Channel], Field(min_length=1, max_length=64)]
+    sample_format: Literal["float64", "float32"] = "float64"
+    """How samples travel and are recorded: ``float64[]`` (SampleBatch) or ``float32[]``
+    (SampleBatch32: half the bytes). float32 is refused for a channel whose converter
+    resolves finer than float32 holds (`float32_misfit`)."""
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """Per channel, its converter's resolution; None where there is no converter (a
+        simulation making up float64 values: float32 is then the site's own choice).
+        Drivers of real converters override this."""
+        return (None,) * len(self.channels)
+
+    @model_validator(mode="after")
+    def _float32_fits(self) -> StreamBase:
+        if self.sample_format == "float32":
+            for ch, res in zip(self.channels, self.resolutions(), strict=True):
+                problem = None if res is None else float32_misfit(res, ch.scale, ch.offset)
+                if problem is not None:
+                    raise ValueError(
+                        f"sample_format: float32 cannot hold channel {ch.name!r}: {problem}; "
+                        "use float64"
+                    )
+        return self
 
     @field_validator("channels")
     @classmethod

@@ -76,7 +76,7 @@ class StreamLoop:
         self.driver = driver or create_driver(cfg)
         names = tuple(ch.name for ch in cfg.channels)
         units = tuple(ch.unit for ch in cfg.channels)
-        self.encoder = BatchEncoder(node, name, names, units)
+        self.encoder = BatchEncoder(node, name, names, units, cfg.sample_format)
         self.channel_index = {ch.name: i for i, ch in enumerate(cfg.channels)}
         self.latest: npt.NDArray[np.float64] | None = None
         """The newest scan in engineering units (what displays show)."""

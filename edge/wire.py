@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, Literal, get_args
 
 import numpy as np
 import numpy.typing as npt
@@ -44,10 +44,41 @@ def decode_u64(raw: bytes | None) -> int | None:
 
 CLOCK_QUALITY_TYPE: Final = "fleetdaq_msgs/msg/ClockQuality"
 SAMPLE_BATCH_TYPE: Final = "fleetdaq_msgs/msg/SampleBatch"
+SAMPLE_BATCH32_TYPE: Final = "fleetdaq_msgs/msg/SampleBatch32"
+"""SampleBatch with ``float32[] data`` (a stream's ``sample_format: float32``); every other
+field, and their layout on the wire, is SampleBatch's."""
 load_definition(CLOCK_QUALITY_TYPE)
 load_definition(SAMPLE_BATCH_TYPE)
+load_definition(SAMPLE_BATCH32_TYPE)
 SAMPLE_BATCH_SCHEMA: Final = schema_text(SAMPLE_BATCH_TYPE)
 """SampleBatch with its dependency, in the ros2msg concatenated form MCAP readers expect."""
+SAMPLE_BATCH32_SCHEMA: Final = schema_text(SAMPLE_BATCH32_TYPE)
+
+SampleFormat = Literal["float64", "float32"]
+"""How a stream's samples travel and are recorded: ``float64[]`` (SampleBatch) or
+``float32[]`` (SampleBatch32). The payload does not say which: the stream's config does on the
+hub, the MCAP channel's schema does in a recording."""
+SAMPLE_FORMATS: Final[tuple[SampleFormat, ...]] = get_args(SampleFormat)
+BATCH_TYPES: Final[dict[SampleFormat, str]] = {
+    "float64": SAMPLE_BATCH_TYPE,
+    "float32": SAMPLE_BATCH32_TYPE,
+}
+"""Sample format -> the message type its batches are recorded as."""
+BATCH_SCHEMAS: Final[dict[str, str]] = {
+    SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA,
+    SAMPLE_BATCH32_TYPE: SAMPLE_BATCH32_SCHEMA,
+}
+"""Every sample-batch message type with its ros2msg schema."""
+_DTYPES: Final[dict[SampleFormat, str]] = {"float64": "<f8", "float32": "<f4"}
+
+
+def sample_format_of(msgtype: str) -> SampleFormat | None:
+    """The sample format of a recorded message type; None when it is not a sample batch."""
+    for fmt, name in BATCH_TYPES.items():
+        if name == msgtype:
+            return fmt
+    return None
+
 
 EARLIEST_PLAUSIBLE_NS: Final = 946_684_800_000_000_000
 """2000-01-01T00:00:00Z: an acquisition time before it comes from a clock that was never set."""
@@ -88,17 +119,24 @@ class BatchHeader:
     scan_count: int
     channel_count: int
     clock: ClockQuality
+    sample_format: SampleFormat = "float64"
+    """How `data` was encoded (checked against the message type by whoever decoded it)."""
 
     @property
     def samples(self) -> int:
         return self.scan_count * self.channel_count
 
+    @property
+    def msgtype(self) -> str:
+        """The message type this batch is (``fleetdaq_msgs/msg/SampleBatch`` or ``...32``)."""
+        return BATCH_TYPES[self.sample_format]
+
 
 @dataclass(frozen=True, slots=True)
 class SampleBatch:
     header: BatchHeader
-    data: npt.NDArray[np.float64]
-    """(scan_count, channel_count) float64."""
+    data: npt.NDArray[np.float64] | npt.NDArray[np.float32]
+    """(scan_count, channel_count), float64 or float32 as `header.sample_format` says."""
     status: npt.NDArray[np.uint8] | None = field(default=None)
     """(scan_count, channel_count) uint8 codes, or None when every sample is valid."""
 
@@ -113,10 +151,18 @@ def _put_string_seq(out: bytearray, items: tuple[str, ...]) -> None:
 
 class BatchEncoder:
     """Encodes the batches of one stream. The constant part (names, channels, units) is
-    serialised once; each batch then costs a few struct packs and one copy of the data."""
+    serialised once; each batch then costs a few struct packs and one copy of the data.
+
+    With `sample_format` ``"float32"`` the batches are SampleBatch32: that one copy also
+    rounds each value to the nearest float32 (NaN stays NaN)."""
 
     def __init__(
-        self, node: str, stream: str, channel_names: tuple[str, ...], channel_units: tuple[str, ...]
+        self,
+        node: str,
+        stream: str,
+        channel_names: tuple[str, ...],
+        channel_units: tuple[str, ...],
+        sample_format: SampleFormat = "float64",
     ) -> None:
         if len(channel_names) != len(channel_units) or not channel_names:
             raise ValueError("need one unit per channel and at least one channel")
@@ -129,6 +175,12 @@ class BatchEncoder:
         prefix += b"\x00" * (align(len(prefix) - 4, 8) - (len(prefix) - 4))
         self._prefix = bytes(prefix)
         self.channel_count = len(channel_names)
+        if sample_format not in _DTYPES:
+            raise ValueError(f"unknown sample format {sample_format!r}")
+        self.sample_format: SampleFormat = sample_format
+        self.msgtype = BATCH_TYPES[sample_format]
+        self._dtype = _DTYPES[sample_format]
+        self._item = np.dtype(self._dtype).itemsize
 
     def encode(
         self,
@@ -157,8 +209,8 @@ class BatchEncoder:
         status_at = align(off, 4)
         off = status_at + 4 + n_status
         data_len_at = align(off, 4)
-        data_at = align(data_len_at + 4, 8)
-        buf = bytearray(4 + data_at + 8 * n)
+        data_at = align(data_len_at + 4, self._item)
+        buf = bytearray(4 + data_at + self._item * n)
         buf[: len(self._prefix)] = self._prefix
         p = len(self._prefix)
         struct.pack_into(
@@ -185,16 +237,21 @@ class BatchEncoder:
                 status, dtype=np.uint8
             ).tobytes()
         struct.pack_into("<I", buf, 4 + data_len_at, n)
-        np.frombuffer(buf, dtype="<f8", count=n, offset=4 + data_at)[:] = data.reshape(-1)
+        np.frombuffer(buf, dtype=self._dtype, count=n, offset=4 + data_at)[:] = data.reshape(-1)
         return buf
 
 
-def _read_header(r: Reader) -> BatchHeader:
-    return _read_rest(r, r.string(), r.string(), r.strings(), r.strings())
+def _read_header(r: Reader, sample_format: SampleFormat) -> BatchHeader:
+    return _read_rest(r, sample_format, r.string(), r.string(), r.strings(), r.strings())
 
 
 def _read_rest(
-    r: Reader, node: str, stream: str, names: tuple[str, ...], units: tuple[str, ...]
+    r: Reader,
+    sample_format: SampleFormat,
+    node: str,
+    stream: str,
+    names: tuple[str, ...],
+    units: tuple[str, ...],
 ) -> BatchHeader:
     """The header after its strings (node, stream, channel names and units)."""
     seq, t0, period, scans, channels = r.unpack("<QqdII", 32, 8)
@@ -223,16 +280,29 @@ def _read_rest(
         scan_count=int(scans),
         channel_count=int(channels),
         clock=ClockQuality(clock_state, int(offset), gm, source),
+        sample_format=sample_format,
     )
 
 
-def read_header(payload: bytes | bytearray | memoryview) -> BatchHeader:
+def _check_format(sample_format: str) -> SampleFormat:
+    if sample_format not in _DTYPES:
+        raise ValueError(f"unknown sample format {sample_format!r}")
+    return sample_format
+
+
+def read_header(
+    payload: bytes | bytearray | memoryview, sample_format: SampleFormat = "float64"
+) -> BatchHeader:
     """Decode and check everything but the arrays, and check the arrays' lengths.
 
-    Raises WireError for anything that is not a well-formed SampleBatch.
+    `sample_format` says which message the payload must be: SampleBatch (``float64``) or
+    SampleBatch32 (``float32``); the bytes alone cannot say (the hub knows it from the
+    stream's config, a reader from the MCAP channel's schema).
+
+    Raises WireError for anything that is not a well-formed batch of that type.
     """
     r = Reader(payload)
-    header = _read_header(r)
+    header = _read_header(r, _check_format(sample_format))
     _array_views(r, header)
     return header
 
@@ -246,22 +316,43 @@ def _array_views(r: Reader, h: BatchHeader) -> tuple[memoryview, memoryview]:
     n_data = r.u32()
     if n_data != n:
         raise WireError(f"data has {n_data} values, expected {n}")
-    r.align(8)
-    data = r.take(8 * n)
+    item = 8 if h.sample_format == "float64" else 4
+    r.align(item)
+    data = r.take(item * n)
     if r.pos != len(r.buf):
         raise WireError(f"{len(r.buf) - r.pos} trailing bytes")
     return status, data
 
 
-def decode_batch(payload: bytes | bytearray | memoryview) -> SampleBatch:
-    """Decode a SampleBatch; arrays are read-only numpy views over `payload` (no copy)."""
-    r = Reader(payload)
-    h = _read_header(r)
-    status_mv, data_mv = _array_views(r, h)
+def _batch(h: BatchHeader, status_mv: memoryview, data_mv: memoryview) -> SampleBatch:
     shape = (h.scan_count, h.channel_count)
-    data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
+    data = np.frombuffer(data_mv, dtype=_DTYPES[h.sample_format]).reshape(shape)
     status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
     return SampleBatch(h, data, status)
+
+
+def decode_batch(
+    payload: bytes | bytearray | memoryview, sample_format: SampleFormat = "float64"
+) -> SampleBatch:
+    """Decode a SampleBatch (or, with ``"float32"``, a SampleBatch32); arrays are read-only
+    numpy views over `payload` (no copy), in the wire's dtype."""
+    r = Reader(payload)
+    h = _read_header(r, _check_format(sample_format))
+    return _batch(h, *_array_views(r, h))
+
+
+def batch_values(
+    header: BatchHeader, payload: bytes | bytearray | memoryview
+) -> npt.NDArray[np.float64]:
+    """The (scans, channels) values of a batch already checked by `read_header` (the hub's
+    accepted batches): the payload's tail, a read-only view for float64 and an exact float64
+    copy for float32, so every consumer computes in float64 whatever the stream sends."""
+    n = header.samples
+    dtype = _DTYPES[header.sample_format]
+    size = np.dtype(dtype).itemsize
+    data = np.frombuffer(payload, dtype=dtype, count=n, offset=len(payload) - size * n)
+    out = data.reshape(header.scan_count, header.channel_count)
+    return out if header.sample_format == "float64" else out.astype(np.float64)
 
 
 class BatchDecoder:
@@ -274,8 +365,11 @@ class BatchDecoder:
         self._prefix = b""
         self._strings: tuple[str, str, tuple[str, ...], tuple[str, ...]] = ("", "", (), ())
 
-    def decode(self, payload: bytes | bytearray | memoryview) -> SampleBatch:
-        """Like `decode_batch` (raises WireError for anything that is not a SampleBatch)."""
+    def decode(
+        self, payload: bytes | bytearray | memoryview, sample_format: SampleFormat = "float64"
+    ) -> SampleBatch:
+        """Like `decode_batch` (raises WireError for anything that is not a batch of
+        `sample_format`)."""
         r = Reader(payload)
         n = len(self._prefix)
         if n and len(payload) > n and payload[:n] == self._prefix:
@@ -283,9 +377,5 @@ class BatchDecoder:
         else:
             self._strings = (r.string(), r.string(), r.strings(), r.strings())
             self._prefix = bytes(payload[: r.pos])
-        h = _read_rest(r, *self._strings)
-        status_mv, data_mv = _array_views(r, h)
-        shape = (h.scan_count, h.channel_count)
-        data = np.frombuffer(data_mv, dtype="<f8").reshape(shape)
-        status = np.frombuffer(status_mv, dtype=np.uint8).reshape(shape) if len(status_mv) else None
-        return SampleBatch(h, data, status)
+        h = _read_rest(r, _check_format(sample_format), *self._strings)
+        return _batch(h, *_array_views(r, h))

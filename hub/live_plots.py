@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from edge.config.site import SiteConfig
+from edge.wire import batch_values
 from hub.batch_feed import BatchFeed, FedBatch
 
 MIN_BUCKET_NS = 2_000_000
@@ -96,9 +97,7 @@ class LivePlots:
         if ring is None:
             return
         h = b.header
-        n = h.samples
-        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
-        data = data.reshape(h.scan_count, h.channel_count)
+        data = batch_values(h, b.payload)
         if h.channel_count != len(ring.channels):
             return
         t = h.first_sample_time_ns + np.arange(h.scan_count) * h.sample_period_ns

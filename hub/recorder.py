@@ -90,6 +90,7 @@ class Recorder:
                 node, stream, select(node, stream), site.nodes[node].streams[stream].rate_hz
             )
             st.budget_bytes = budget
+            st.sample_format = site.nodes[node].streams[stream].sample_format
             self.routes[self.keys.data(node, stream)] = st
         self.streams = {(st.node, st.stream): st for st in self.routes.values()}
         self.refused = refused
@@ -439,7 +440,7 @@ class Recorder:
         assert self.session is not None
         node, stream = st.node, st.stream
         try:
-            h = read_header(payload)
+            h = read_header(payload, st.sample_format)
             if (h.node, h.stream) != (node, stream):
                 raise WireError(f"payload says {h.node}/{h.stream}, key says {node}/{stream}")
             if floor is not None and floor > h.sequence:
@@ -486,7 +487,13 @@ class Recorder:
             st.recorded
             and self.recording
             and not self._guarded(
-                "writing", self.session.write, topic_of(node, stream), payload, publish, recv_ns
+                "writing",
+                self.session.write,
+                topic_of(node, stream),
+                payload,
+                publish,
+                recv_ns,
+                h.msgtype,
             )
         ):
             st.deferred += 1

@@ -44,6 +44,7 @@ from edge.config.control import (
 )
 from edge.config.site import SiteConfig
 from edge.keys import SiteKeys
+from edge.wire import batch_values
 from hub.alarms.conditions import SampleCondition
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -271,9 +272,7 @@ class RuleEngine:
         if not leaves:
             return
         h = b.header
-        n = h.samples
-        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
-        columns = data.reshape(h.scan_count, h.channel_count)
+        columns = batch_values(h, b.payload)
         changed = False
         for col, leaf in leaves:
             x = np.ascontiguousarray(columns[:, col])

@@ -26,7 +26,7 @@ from mcap.writer import CompressionType, Writer
 from edge import __version__
 from edge.config.hub import RecorderConfig
 from edge.messages import SCHEMAS as MESSAGE_SCHEMAS
-from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+from edge.wire import BATCH_SCHEMAS, SAMPLE_BATCH_TYPE
 
 log = logging.getLogger("fleetdaq.recorder")
 
@@ -36,7 +36,7 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 ACTIVE_SUFFIX = ".active"
-SCHEMAS = {SAMPLE_BATCH_TYPE: SAMPLE_BATCH_SCHEMA, **MESSAGE_SCHEMAS}
+SCHEMAS = {**BATCH_SCHEMAS, **MESSAGE_SCHEMAS}
 """Every message type the hub records, with its ros2msg definition (embedded per file)."""
 EVENTS_TOPIC = "/events"
 FILE_INDEX_METADATA = "fleetdaq.file_index"

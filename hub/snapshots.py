@@ -32,7 +32,7 @@ from typing import Any
 
 from edge.config.site import SiteConfig, effective_yaml
 from edge.messages import Event
-from edge.wire import SAMPLE_BATCH_TYPE, plausible_time
+from edge.wire import plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.read_model import ReadModel
@@ -130,7 +130,7 @@ class SnapshotBuffer:
     def _on_batch(self, b: FedBatch) -> None:
         first = b.header.first_sample_time_ns
         publish = first if plausible_time(first, b.recv_ns) else b.recv_ns
-        self.offer(topic_of(b.node, b.stream), b.payload, publish, b.recv_ns, SAMPLE_BATCH_TYPE)
+        self.offer(topic_of(b.node, b.stream), b.payload, publish, b.recv_ns, b.header.msgtype)
 
     def _on_event(self, e: Event) -> None:
         if e.tag != "alarm_raised" or e.get("severity") not in self.cfg.on_alarm:

@@ -13,6 +13,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from edge.wire import SampleFormat
 from hub.read_model import StreamView
 
 
@@ -53,6 +54,9 @@ class StreamStats:
     """Received and not yet written (approximate: two threads update it)."""
     budget_bytes: int = 0
     """This stream's share of the receive queue."""
+    sample_format: SampleFormat = "float64"
+    """What its batches must be (the site file's `sample_format`): SampleBatch or
+    SampleBatch32; anything else is malformed."""
     acq_gaps: int = 0
     """Breaks in acquisition time between consecutive batches (e.g. an edge restart)."""
     acq_gap_s: float = 0.0

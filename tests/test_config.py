@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import get_args
 
+import numpy as np
 import pytest
 
 from edge.config.load import load_config, parse_config
@@ -23,7 +24,7 @@ from edge.drivers.table import DRIVERS, StreamConfig
 from edge.drivers.thermocouple_sim import ThermocoupleSimStream
 from edge.drivers.wave_sim import WaveSimStream
 from edge.errors import ConfigError
-from edge.schema import Channel
+from edge.schema import Channel, Resolution, float32_misfit
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO
@@ -148,6 +149,15 @@ BAD: dict[str, tuple[str, str]] = {
     "bad_t8_simulated_and_real.yaml": (
         "nodes.rig.outputs.valve",
         "the T8 'ANY' is simulated in streams.t8",
+    ),
+    "bad_float32_finer_than_float32.yaml": (
+        "nodes.wec.streams.t8.sample_format",
+        "float32 cannot hold channel 'surge': one code of its converter is 1.31e-06 at values "
+        "up to 111 (after scale and offset), where float32 steps 7.63e-06; use float64",
+    ),
+    "bad_sample_format_unknown.yaml": (
+        "nodes.wec.streams.t8.sample_format",
+        "'float64' or 'float32'",
     ),
 }
 
@@ -384,3 +394,77 @@ def test_with_security_on_every_endpoint_must_be_tls() -> None:
     bad = text.replace("      - tls/hub.example:7447", "      - tcp/hub.example:7447", 1)
     with pytest.raises(ConfigError, match=r"nodes\.wec-t8\.connect\[0\].*tls/hub\.example:7447"):
         parse_config(bad, "site.yaml")
+
+
+# --- sample_format: float32 where the converter's resolution fits ---------------------------
+
+
+def _float32_site(stream: str, channels: str, fmt: str = "float32") -> str:
+    return (
+        "site: a\nnodes:\n  n:\n    streams:\n"
+        f"      s: {{{stream}, sample_format: {fmt}, channels: [{channels}]}}\n"
+    )
+
+
+@pytest.mark.parametrize(
+    ("stream", "channels"),
+    [
+        ("driver: max31855, rate_hz: 4, sim: {}", "{name: tc}, {name: cj}"),
+        ("driver: max31856, rate_hz: 4, sim: {}", "{name: tc}, {name: cj, offset: 273.15}"),
+        ("driver: sht3x, rate_hz: 1, sim: {}", "{name: t}, {name: rh}"),
+        ("driver: labjack_t8, rate_hz: 100, sim: {}", "{name: a, range: 0.018}, {name: b}"),
+        ("driver: labjack_t8, rate_hz: 100, sim: {}", "{name: a, scale: 250, unit: kN}"),
+        (
+            "driver: labjack_t8_poll, rate_hz: 10, sim: {}",
+            "{name: a, source: AIN3}, {name: b, source: FIO1}",
+        ),
+        ("driver: wave_sim, rate_hz: 100", "{name: heave, offset: 1.0e+9}"),  # no converter
+    ],
+)
+def test_float32_is_accepted_where_the_converter_fits(stream: str, channels: str) -> None:
+    site = parse_config(_float32_site(stream, channels), "f")
+    assert site.nodes["n"].streams["s"].sample_format == "float32"
+
+
+def test_float32_is_refused_for_a_t8_channel_offset_past_its_codes_and_float64_is_not() -> None:
+    t8 = "driver: labjack_t8, rate_hz: 100, sim: {}"
+    with pytest.raises(ConfigError, match=r"^f: nodes\.n\.streams\.s\.sample_format: float32 "):
+        parse_config(_float32_site(t8, "{name: a, offset: 100}"), "f")
+    poll = "driver: labjack_t8_poll, rate_hz: 10, sim: {}"
+    with pytest.raises(ConfigError, match=r"float32 cannot hold channel 'dac'"):
+        parse_config(_float32_site(poll, "{name: dac, source: DAC0}"), "f")
+    site = parse_config(_float32_site(t8, "{name: a, offset: 100}", "float64"), "f")
+    assert site.nodes["n"].streams["s"].sample_format == "float64"
+    minimal = parse_config(
+        (Path(__file__).parent / "data/config/good_minimal.yaml").read_text(), "f"
+    )
+    assert minimal.nodes["rig"].streams["daq"].sample_format == "float64"
+
+
+@pytest.mark.parametrize(
+    ("res", "scale", "offset", "fits"),
+    [
+        (Resolution.bits(24, -11.0, 11.0), 1.0, 0.0, True),  # a T8 at ±11 V
+        (Resolution.bits(25, -8.0, 8.0), 1.0, 0.0, True),  # the sign is free: 24 bits of size
+        (Resolution.bits(26, -8.0, 8.0), 1.0, 0.0, False),  # one more than float32 holds
+        (Resolution.bits(24, -8.0, 8.0), -3.0, 0.0, True),  # a scale alone changes nothing
+        (Resolution.bits(24, -8.0, 8.0), 1.0, 7.9, True),  # up to 15.9: one code still fits
+        (Resolution.bits(24, -8.0, 8.0), 1.0, 8.5, False),  # past 16: float32 steps twice
+        (Resolution.bits(24, 0.0, 8.0), 1.0, 0.0, True),  # unipolar, 24 bits
+        (Resolution.bits(25, 0.0, 8.0), 1.0, 0.0, False),  # unipolar, 25 bits
+        (Resolution.bits(14, -2048.0, 2048.0), 1.0, 273.15, True),  # MAX31855 in kelvin
+        (Resolution.bits(19, -2048.0, 2048.0), 1.0, 0.0, True),  # MAX31856
+        (Resolution.bits(16, 0.0, 1.0), 1.0, 1000.0, False),  # a small span far from zero
+        (Resolution.bits(8, 0.0, 1.0), 1e39, 0.0, False),  # beyond float32's range
+    ],
+)
+def test_the_float32_rule_is_one_code_against_float32s_step_at_the_top(
+    res: Resolution, scale: float, offset: float, fits: bool
+) -> None:
+    assert (float32_misfit(res, scale, offset) is None) == fits
+    # What the rule promises, checked on the codes next to the top of the span (where float32
+    # is coarsest): every code keeps its own float32 value exactly when the rule says it fits.
+    with np.errstate(over="ignore"):
+        top = (res.high - np.arange(4096) * res.step) * scale + offset
+        distinct = np.unique(top.astype(np.float32)).size == top.size
+    assert distinct == fits

@@ -31,6 +31,7 @@ from tests.analysis.recordings import (
     event_message,
     health_message,
     make_batches,
+    stream_messages,
     write_session,
 )
 from tests.procs import REPO
@@ -70,6 +71,9 @@ def test_the_msg_files_are_the_schemas_embedded_in_a_recording(tmp_path: Path):
         event_message(t0 + 1, "wec", 20, "started", "hello"),
         health_message(t0 + 2, "wec", 50),
         alarm_message(t0 + 3, "heave_high", "active_unacked", True),
+        *stream_messages(
+            make_batches(2, seed=3), "wec", "f32", ("a", "b", "c"), ("V",) * 3, 7, "float32"
+        ),
     ]
     s = write_session(tmp_path, make_batches(3), extra=extra)
     s2 = RecordingSession(tmp_path / "hb", "demo", ["wec"], s.cfg, "site: demo\n", t0)

@@ -30,6 +30,8 @@ from edge.errors import (
 )
 from edge.schema import Float, Int, SimFault, Strict, as_identifier
 
+T8_ADC_BITS = 24
+"""One 24-bit sigma-delta ADC per analog input: its codes span the channel's ±range."""
 T8_RANGES = (11.0, 9.6, 4.8, 2.4, 1.2, 0.6, 0.3, 0.15, 0.075, 0.036, 0.018)
 """The T8's AIN#_RANGE values (± volts), T-Series datasheet 14.3.2 / A-3-3-3."""
 T8_MAX_SAMPLE_RATE = 400_000

@@ -36,6 +36,7 @@ from pydantic import AfterValidator, Field, model_validator
 from edge.drivers.base import Block, DriverEvent
 from edge.drivers.labjack_ljm import (
     CORE_TIMER_HZ,
+    T8_ADC_BITS,
     T8_MAX_SAMPLE_RATE,
     CoreTimer,
     LabJackT8Sim,
@@ -46,7 +47,7 @@ from edge.drivers.labjack_ljm import (
 )
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.errors import DriverError
-from edge.schema import Channel, Float, Int, StreamBase
+from edge.schema import Channel, Float, Int, Resolution, StreamBase
 from edge.wire import SampleStatus
 
 log = logging.getLogger("fleetdaq.drivers.labjack_t8")
@@ -89,6 +90,10 @@ class LabJackT8Stream(StreamBase, T8Connection):
                 f"{T8_MAX_SAMPLE_RATE} samples/s"
             )
         return self
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """The T8's ADC: 24 bits per channel over its ±range (T-Series datasheet, T8 AIN)."""
+        return tuple(Resolution.bits(T8_ADC_BITS, -ch.range, ch.range) for ch in self.channels)
 
     @property
     def ains(self) -> list[int]:

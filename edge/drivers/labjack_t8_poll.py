@@ -12,16 +12,18 @@ from pydantic import AfterValidator, Field
 from edge.drivers.base import Block, DriverEvent
 from edge.drivers.labjack_ljm import (
     CORE_TIMER_HZ,
+    T8_ADC_BITS,
     CoreTimer,
     LabJackT8Sim,
     LjmDevice,
     T8Connection,
+    T8Outputs,
     load_ljm,
     t8_range,
 )
 from edge.drivers.pacing import SYSTEM_TIME, PollPacer, TimeSource
 from edge.errors import DriverError
-from edge.schema import Channel, Float, Int, StreamBase
+from edge.schema import Channel, Float, Int, Resolution, StreamBase
 from edge.wire import SampleStatus
 
 T8_POLL_REGISTER = r"^(AIN[0-7]|FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9])|DAC[01])$"
@@ -45,6 +47,20 @@ class LabJackT8PollStream(StreamBase, T8Connection):
     resolution_index: Annotated[Int, Field(ge=0, le=16)] = 0
     """AIN#_RESOLUTION_INDEX for every polled AIN."""
     sim: LabJackT8Sim | None = None
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """AIN: the 24-bit ADC over ±range; a digital line: 0 or 1; a DAC readback (the value
+        written, any float): taken as fine as the ADC over the DAC's -0.1..10 V, which float32
+        does not hold, so a stream with one stays float64."""
+
+        def one(ch: T8PollChannel) -> Resolution:
+            if ch.source.startswith("AIN"):
+                return Resolution.bits(T8_ADC_BITS, -ch.range, ch.range)
+            if ch.source.startswith("DAC"):
+                return Resolution.bits(T8_ADC_BITS, T8Outputs.DAC_MIN_V, T8Outputs.DAC_MAX_V)
+            return Resolution(1.0, 0.0, 1.0)
+
+        return tuple(one(ch) for ch in self.channels)
 
 
 class LabJackT8Poll:

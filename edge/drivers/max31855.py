@@ -29,7 +29,7 @@ from pydantic import Field
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
 from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
-from edge.schema import Channel, Float, Int, Name, SimFault, StreamBase, Strict
+from edge.schema import Channel, Float, Int, Name, Resolution, SimFault, StreamBase, Strict
 from edge.wire import SampleStatus
 
 log = logging.getLogger("fleetdaq.drivers.max31855")
@@ -66,6 +66,12 @@ class Max31855Stream(StreamBase, SpiDevice):
     """At most 10 Hz: a conversion takes up to 100 ms (datasheet, tCONV)."""
     channels: Annotated[list[Channel], Field(min_length=1, max_length=2)]
     sim: ThermocoupleSim | None = None
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """Thermocouple: 14-bit two's complement, 0.25 °C; cold junction: 12-bit, 0.0625 °C."""
+        return (Resolution.bits(14, -2048.0, 2048.0), Resolution.bits(12, -128.0, 128.0))[
+            : len(self.channels)
+        ]
 
 
 SPI_MODE = 0

@@ -29,7 +29,7 @@ from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
 from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
 from edge.errors import DeviceNotFound
-from edge.schema import Channel, Float, SimFault, StreamBase
+from edge.schema import Channel, Float, Resolution, SimFault, StreamBase
 from edge.wire import SampleStatus
 
 
@@ -56,6 +56,12 @@ class Max31856Stream(StreamBase, SpiDevice):
     """The notch of the input filter: the local mains frequency."""
     conversion: Literal["continuous", "one_shot"] = "continuous"
     sim: Max31856Sim | None = None
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """Thermocouple: 19-bit two's complement, 2^-7 °C; cold junction: 14-bit, 2^-6 °C."""
+        return (Resolution.bits(19, -2048.0, 2048.0), Resolution.bits(14, -128.0, 128.0))[
+            : len(self.channels)
+        ]
 
     @property
     def conversion_s(self) -> float:

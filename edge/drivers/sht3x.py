@@ -23,7 +23,7 @@ from edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.polled import Poll, PolledDriver
 from edge.errors import DeviceError, DeviceNotFound
-from edge.schema import Channel, Float, Int, StreamBase, Strict
+from edge.schema import Channel, Float, Int, Resolution, StreamBase, Strict
 from edge.wire import SampleStatus
 
 
@@ -50,6 +50,12 @@ class Sht3xStream(StreamBase):
     retries: Annotated[Int, Field(ge=0, le=10)] = 3
     """Extra attempts after a NACK or a CRC mismatch before the sample is marked invalid."""
     sim: Sht3xSim | None = None
+
+    def resolutions(self) -> tuple[Resolution | None, ...]:
+        """16-bit words (datasheet 4.13): T = -45 + 175 x / 65535 °C, RH = 100 x / 65535 %."""
+        return (Resolution(175 / 65535, -45.0, 130.0), Resolution(100 / 65535, 0.0, 100.0))[
+            : len(self.channels)
+        ]
 
 
 COMMANDS = {"high": (0x24, 0x00), "medium": (0x24, 0x0B), "low": (0x24, 0x16)}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from edge.wire import BatchDecoder
+from edge.wire import BatchDecoder, SampleFormat
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
 from fleetdaq.analysis.window import format_ns
@@ -130,9 +130,11 @@ class Assembler:
             status[: self._n] = self._status[: self._n]
             self._status = status
 
-    def add(self, payload: memoryview | bytes) -> None:
-        """One recorded SampleBatch payload (raises `edge.errors.WireError` if not one)."""
-        batch = self._decoder.decode(payload)
+    def add(self, payload: memoryview | bytes, sample_format: SampleFormat = "float64") -> None:
+        """One recorded batch payload: a SampleBatch, or with ``"float32"`` a SampleBatch32
+        (its values are widened to float64 exactly). Raises `edge.errors.WireError` if the
+        payload is not one."""
+        batch = self._decoder.decode(payload, sample_format)
         h = batch.header
         key = (h.sequence, h.first_sample_time_ns)
         if key in self._seen:

@@ -26,7 +26,7 @@ from edge.messages import (
     Event,
     NodeHealth,
 )
-from edge.wire import SAMPLE_BATCH_TYPE, BatchHeader, read_header
+from edge.wire import BatchHeader, read_header, sample_format_of
 from fleetdaq.analysis.assemble import Assembler
 from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
 from fleetdaq.analysis.files import RecordedFile, Source, find_files, load_file, read_attachment
@@ -84,11 +84,11 @@ class Recording:
     # --- what is there -----------------------------------------------------------------------
 
     def streams(self) -> list[StreamInfo]:
-        """Every stream (topic of SampleBatch messages), by name."""
+        """Every stream (topic of SampleBatch or SampleBatch32 messages), by name."""
         found: dict[str, list[RecordedFile]] = {}
         for f in self.files:
             for topic, msgtype in f.topics.items():
-                if msgtype == SAMPLE_BATCH_TYPE:
+                if sample_format_of(msgtype) is not None:
                     found.setdefault(topic, []).append(f)
         out = []
         for topic, files in sorted(found.items()):
@@ -258,9 +258,10 @@ class Recording:
         asm = Assembler(info.node, info.stream, wanted, start, end, hint)
         for f in files:
             cid = f.channel_ids[info.topic]
+            fmt = sample_format_of(f.topics[info.topic]) or "float64"
             try:
                 for _, _, _, payload in iter_messages(f.path, f.summary, (cid,), pool):
-                    asm.add(payload)
+                    asm.add(payload, fmt)
             except WireError as err:
                 raise DamagedRecording(f"{f.path}: a {info.topic} batch: {err}") from err
             asm.files.append(f.path)
@@ -280,9 +281,10 @@ class Recording:
             cid = f.channel_ids.get(topic)
             if cid is None:
                 continue
+            fmt = sample_format_of(f.topics[topic]) or "float64"
             for _, _, _, payload in iter_messages(f.path, f.summary, (cid,)):
                 try:
-                    return read_header(payload)
+                    return read_header(payload, fmt)
                 except WireError as err:
                     raise DamagedRecording(f"{f.path}: a {topic} batch: {err}") from err
         return None

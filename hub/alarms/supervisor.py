@@ -26,6 +26,7 @@ import numpy as np
 from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.messages import ALARM_STATE_TYPE, AlarmState
+from edge.wire import batch_values
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, batch_extremes
 from hub.alarms.definitions import AlarmDef, build_definitions
 from hub.alarms.journal import Journal
@@ -197,9 +198,7 @@ class Supervisor:
         h = b.header
         # The data array is the payload's tail (the recorder checked every length): a view,
         # and one transposed copy so that each channel is contiguous.
-        n = h.samples
-        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
-        columns = np.ascontiguousarray(data.reshape(h.scan_count, h.channel_count).T)
+        columns = np.ascontiguousarray(batch_values(h, b.payload).T)
         lo, hi, nan = batch_extremes(columns)
         period = h.sample_period_ns
         for col, a in alarms:

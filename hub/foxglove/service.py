@@ -28,11 +28,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
-import numpy as np
-
 from edge.config.site import SiteConfig
 from edge.messages import Event
-from edge.wire import plausible_time
+from edge.wire import batch_values, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.errors import HubError
@@ -236,10 +234,8 @@ class FoxgloveLive:
         if not (plausible_time(h.first_sample_time_ns, now) and plausible_time(int(last_ns), now)):
             self.counts["implausible"] += 1  # an edge whose clock was never set, or a lie
             return
-        n = h.samples
-        data = np.frombuffer(b.payload, dtype="<f8", count=n, offset=len(b.payload) - 8 * n)
         rows = st.decimator.add(
-            h.first_sample_time_ns, h.sample_period_ns, data.reshape(h.scan_count, -1)
+            h.first_sample_time_ns, h.sample_period_ns, batch_values(h, b.payload)
         )
         out = st.messages.encode(rows)
         for t, msg in out:

@@ -24,7 +24,7 @@ from edge.messages import (
     TimeSyncStatus,
     make_event,
 )
-from edge.wire import BatchEncoder
+from edge.wire import BatchEncoder, SampleFormat
 from hub.session import RecordingSession
 from ptp.quality import ClockQuality, ClockState
 
@@ -82,15 +82,16 @@ def stream_messages(
     channels: tuple[str, ...],
     units: tuple[str, ...],
     receive_delay_ns: int = 5_000_000,
+    sample_format: SampleFormat = "float64",
 ) -> list[Extra]:
     """`batches` of another stream as extra messages for `write_session`."""
-    enc = BatchEncoder(node, stream, channels, units)
+    enc = BatchEncoder(node, stream, channels, units, sample_format)
     return [
         (
             b.t0_ns + receive_delay_ns,
             f"/{node}/{stream}",
             bytes(enc.encode(b.sequence, b.t0_ns, b.period_ns, b.data, b.clock, b.status)),
-            "fleetdaq_msgs/msg/SampleBatch",
+            enc.msgtype,
             b.t0_ns,
         )
         for b in batches
@@ -110,6 +111,7 @@ def write_session(
     log_ns: list[int] | None = None,
     start_ns: int | None = None,
     extra: list[Extra] | None = None,
+    sample_format: SampleFormat = "float64",
 ) -> RecordingSession:
     """A closed session under `root` holding `batches` on ``/node/stream`` (received
     `receive_delay_ns` after acquisition, or at `log_ns`), plus `extra` messages, all written
@@ -118,12 +120,12 @@ def write_session(
     first = start_ns if start_ns is not None else (batches[0].t0_ns if batches else T0)
     s = RecordingSession(root, "demo", [node], cfg, f"site: demo\nnodes: [{node}]\n", first)
     width = batches[0].data.shape[1] if batches else len(channels)
-    enc = BatchEncoder(node, stream, channels[:width], units[:width])
+    enc = BatchEncoder(node, stream, channels[:width], units[:width], sample_format)
     items: list[tuple[int, str, bytes, int, str]] = []
     for i, b in enumerate(batches):
         payload = bytes(enc.encode(b.sequence, b.t0_ns, b.period_ns, b.data, b.clock, b.status))
         recv = log_ns[i] if log_ns is not None else b.t0_ns + receive_delay_ns
-        items.append((recv, f"/{node}/{stream}", payload, b.t0_ns, "fleetdaq_msgs/msg/SampleBatch"))
+        items.append((recv, f"/{node}/{stream}", payload, b.t0_ns, enc.msgtype))
     for item in extra or []:
         recv, topic, payload, msgtype = item[:4]
         publish = item[4] if len(item) == 5 else recv
