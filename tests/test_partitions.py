@@ -15,10 +15,13 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 
+from edge.config.load import load_config
 from edge.keys import SiteKeys
 from hub.partition import partition_key
 from hub.status import query_status
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_until
+
+REPO = Path(__file__).resolve().parent.parent
 
 SITE = """\
 site: parts
@@ -228,3 +231,42 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         seqs = bay2_rec[f"/{node}/wave"]
         at_stop = max(rig.summary("bay2-1")["streams"][f"{node}/wave"]["last_sequence"], 0)
         assert max(seqs) >= at_stop + 20, "the outage's batches were replayed into bay2"
+
+
+# --- the site file ---------------------------------------------------------------------------
+
+
+def test_each_node_connects_to_its_own_hubs_router_and_partitions_mesh_with_earlier_hubs():
+    site = load_config(REPO / "tests/data/config/good_partitions.yaml")
+    assert site.endpoints_for("wec-1") == ["tcp/10.0.0.1:7447"]
+    assert site.endpoints_for("cell-2") == ["tcp/10.0.0.2:7447"]
+    assert site.nodes_of(None) == ["wec-1", "wec-2"]
+    assert site.nodes_of("bay2") == ["cell-1", "cell-2"]
+    assert site.mesh_connect(None) == []
+    assert site.mesh_connect("bay2") == ["tcp/10.0.0.1:7447"]
+
+
+def test_a_site_without_partitions_is_one_hub_recording_every_node():
+    site = load_config(REPO / "tests/data/config/good_minimal.yaml")
+    assert site.nodes_of(None) == list(site.nodes)
+    assert site.mesh_connect(None) == []
+
+
+def test_an_unknown_partition_on_the_command_line_is_one_line_and_exit_2():
+    import subprocess
+    import sys
+
+    cfg = "tests/data/config/good_partitions.yaml"
+    run = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "hub", "--config", cfg, "--partition", "bay3"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert run.returncode == 2
+    assert run.stderr.strip().splitlines() == [
+        "--partition: tests/data/config/good_partitions.yaml has no partition 'bay3' in "
+        "hub.partitions (bay2)"
+    ]
