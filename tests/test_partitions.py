@@ -6,6 +6,8 @@ slice records on untouched. The main hub sees the whole fleet through the mesh."
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -169,6 +171,19 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
     own = rig.bay2_status()
     assert own is not None
     assert {s["node"] for s in own["streams"]} == set(BAY2_SLICE)
+    # What `fleetdaq fleet status` runs on a partition hub's host: its own recorder.
+    args = ["rec", "status", "--json", "--config", str(rig.cfg), "--partition", "bay2"]
+    rec = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    recorder = json.loads(rec.stdout)["recorder"]
+    assert recorder["state"] == "recording"
+    assert Path(recorder["session_dir"]).parent == rig.tmp / "bay2"
 
     # The partition hub goes away: its edges spool, the main slice records on.
     main_before = {n: _acked(status, n) for n in MAIN_SLICE}
@@ -253,9 +268,6 @@ def test_a_site_without_partitions_is_one_hub_recording_every_node():
 
 
 def test_an_unknown_partition_on_the_command_line_is_one_line_and_exit_2():
-    import subprocess
-    import sys
-
     cfg = "tests/data/config/good_partitions.yaml"
     run = subprocess.run(
         [sys.executable, "-m", "fleetdaq", "hub", "--config", cfg, "--partition", "bay3"],
