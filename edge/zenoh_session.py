@@ -31,13 +31,19 @@ def client_config(endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | No
 
 
 def router_config(
-    listen: list[str], tls: TlsFiles | None = None, acl: dict[str, Any] | None = None
+    listen: list[str],
+    tls: TlsFiles | None = None,
+    acl: dict[str, Any] | None = None,
+    connect: list[str] | None = None,
 ) -> Any:
     """The hub's router; with `tls`, mutual TLS only (a client without a certificate from the
-    site CA is refused), and `acl` as its access control."""
+    site CA is refused), and `acl` as its access control. `connect`: other hubs' routers to
+    mesh with (Zenoh retries them in the background and relinks when one returns)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("router"))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("scouting/multicast/enabled", "false")
     _no_shared_memory(conf)
     if tls is not None:

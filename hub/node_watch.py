@@ -74,10 +74,14 @@ class NodeWatch:
         refused: RefusedKeys,
         events_per_s: float = 200.0,
         event_burst: float = 2000.0,
+        partition: str | None = None,
     ) -> None:
+        """`partition`: a partition hub watches only its own nodes (each by name, so nothing of
+        the others crosses the mesh); the main hub (None) watches the whole fleet."""
         self.router = router
         self.keys = SiteKeys(site.site)
-        self.known = frozenset(site.nodes)
+        self.partition = partition
+        self.known = frozenset(site.nodes if partition is None else site.nodes_of(partition))
         self.bus = bus
         self.model = model
         self.recorder = recorder
@@ -87,23 +91,27 @@ class NodeWatch:
         must not block."""
         self.alive_listeners: list[AliveListener] = []
         """Called with (node, alive) when a node's liveliness token appears or goes."""
-        self._alive: dict[str, bool] = dict.fromkeys(site.nodes, False)
+        self._alive: dict[str, bool] = dict.fromkeys(sorted(self.known), False)
         self._health: dict[str, tuple[NodeHealth, int]] = {}
         self._malformed: dict[str, int] = {}
-        self._buckets = {n: _Bucket(events_per_s, event_burst) for n in site.nodes}
+        self._buckets = {n: _Bucket(events_per_s, event_burst) for n in self.known}
         self._lock = threading.Lock()
         self._subs: list[Any] = []
 
     def start(self) -> None:
         session = self.router.session
         self._publish()
-        self._subs = [
-            session.declare_subscriber(self.keys.all_health, self._on_health),
-            session.declare_subscriber(self.keys.all_events, self._on_event),
-            session.liveliness().declare_subscriber(
-                self.keys.all_alive, self._on_alive, history=True
-            ),
-        ]
+        k = self.keys
+        if self.partition is None:
+            selectors = [(k.all_health, k.all_events, k.all_alive)]
+        else:
+            selectors = [(k.health(n), k.events(n), k.alive(n)) for n in sorted(self.known)]
+        for health, events, alive in selectors:
+            self._subs += [
+                session.declare_subscriber(health, self._on_health),
+                session.declare_subscriber(events, self._on_event),
+                session.liveliness().declare_subscriber(alive, self._on_alive, history=True),
+            ]
 
     def stop(self) -> None:
         for sub in self._subs:

@@ -44,6 +44,8 @@ class StreamView:
     last_sequence: int | None = None
     acked: int | None = None
     last_receive_ns: int = 0
+    hub: str = ""
+    """The partition hub that records this stream ("": this hub), as its report says."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,6 +127,9 @@ class HubView:
     """Health and event payloads refused per node (batches: per stream, in `streams`)."""
     bus: tuple[dict[str, Any], ...] = ()
     failures: tuple[tuple[str, str], ...] = ()
+    partitions: dict[str, Any] = field(default_factory=dict)
+    """The main hub's view of each partition hub (`hub.partition.PartitionWatch`): alive,
+    when its last report came, its recorder."""
 
     def node(self, name: str) -> NodeView | None:
         return next((n for n in self.nodes if n.node == name), None)
@@ -147,6 +152,9 @@ class ReadModel:
     def snapshot(self, time_ns: int = 0) -> HubView:
         with self._lock:
             parts = dict(self._parts)
+        remote = parts.pop("partition_streams", ())
+        if remote:  # the partitions' streams, as their hubs report them, after this hub's own
+            parts["streams"] = (*parts.get("streams", ()), *remote)
         return HubView(site=self.site, time_ns=time_ns, **parts)
 
 

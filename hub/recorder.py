@@ -73,7 +73,11 @@ class Recorder:
         refused: RefusedKeys,
         feed: BatchFeed | None = None,
         max_queued_bytes: int = 512 * 1024 * 1024,
+        partition: str | None = None,
     ) -> None:
+        """`partition`: the hub this is (None: the main hub). With `hub.partitions` in the site
+        file, a hub records and acks only the streams of its own nodes (`SiteConfig.nodes_of`)
+        and subscribes to those alone, so no other hub's batches cross the router mesh to it."""
         self.router = router
         self.site = site
         self.cfg = site.hub.recorder
@@ -82,7 +86,9 @@ class Recorder:
         self.model = model
         self.keys = SiteKeys(site.site)
         select = StreamSelector(self.cfg.include, self.cfg.exclude)
-        names = [(n, s) for n, node in site.nodes.items() for s in node.streams]
+        self.nodes = site.nodes_of(partition)
+        self.partitioned = bool(site.hub.partitions)
+        names = [(n, s) for n in self.nodes for s in site.nodes[n].streams]
         budget = max(4 * 1024 * 1024, max_queued_bytes // max(1, len(names)))
         self.routes: dict[str, StreamStats] = {}
         for node, stream in names:
@@ -135,7 +141,7 @@ class Recorder:
         return RecordingSession(
             self.data_dir,
             self.site.site,
-            list(self.site.nodes),
+            list(self.nodes),
             self.cfg,
             effective_yaml(self.site),
             time.time_ns(),
@@ -166,7 +172,15 @@ class Recorder:
             st.queued_bytes += len(payload)
             put((_DATA, st, payload, time.time_ns(), floor))
 
-        self._subs = [self.router.session.declare_subscriber(self.keys.all_data, on_data)]
+        # One hub: every node's data (keys of unknown nodes refused and counted). Partitioned:
+        # each of its own nodes', or the other hubs' batches would cross the mesh to it.
+        selectors = (
+            [self.keys.data(node, "*") for node in self.nodes]
+            if self.partitioned
+            else [self.keys.all_data]
+        )
+        declare = self.router.session.declare_subscriber
+        self._subs = [declare(key, on_data) for key in selectors]
 
     def _recover_crashed_files(self) -> None:
         """Turn ``*.mcap.active`` files left by a crash into valid files, with an event each."""

@@ -26,9 +26,13 @@ class Router:
 
     name = "router"
 
-    def __init__(self, listen: list[str], site: SiteConfig | None = None) -> None:
+    def __init__(
+        self, listen: list[str], site: SiteConfig | None = None, connect: list[str] | None = None
+    ) -> None:
+        """`connect`: the routers of the other hubs to mesh with (`SiteConfig.mesh_connect`)."""
         self.listen = listen
         self.site = site
+        self.connect = connect or []
         self._session: Any = None
 
     @property
@@ -46,7 +50,7 @@ class Router:
                 raise RouterError(f"security.tls is on, but {err}") from None
             acl = access_control(self.site)
         try:
-            self._session = zenoh.open(router_config(self.listen, tls, acl))
+            self._session = zenoh.open(router_config(self.listen, tls, acl, self.connect))
         except zenoh.ZError as err:
             raise RouterError(f"cannot start the Zenoh router on {self.listen}: {err}") from err
 

@@ -43,6 +43,7 @@ from hub.live_plots import LivePlots
 from hub.memory import keep_payload_pages
 from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
+from hub.partition import PartitionWatch
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
@@ -93,7 +94,7 @@ class HubRuntime:
         self.refused = RefusedKeys(self.bus, self.model)
 
         self.feed = BatchFeed()
-        self.router = Router(self.listen, site)
+        self.router = Router(self.listen, site, connect=site.mesh_connect(None))
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(
             self.router, site, self.data_dir, self.bus, self.model, self.refused, self.feed
@@ -170,6 +171,9 @@ class HubRuntime:
             else None
         )
         self.foxglove = FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot)
+        self.partitions = (
+            PartitionWatch(self.router, site, self.bus, self.model) if site.hub.partitions else None
+        )
         self.services = ServiceStack(
             [
                 self.router,
@@ -178,6 +182,7 @@ class HubRuntime:
                 self.notifier,  # before the supervisor: its last transitions still mailed
                 self.recorder,
                 self.nodes,
+                *([self.partitions] if self.partitions is not None else []),
                 self.fleet,
                 self.hub_health,
                 *([self.snapshots] if self.snapshots is not None else []),

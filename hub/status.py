@@ -32,9 +32,11 @@ class StatusService:
         keys: SiteKeys,
         snapshot: Callable[[], HubView],
         security: SecurityConfig | None = None,
+        key: str | None = None,
     ) -> None:
+        """`key`: where to answer (default ``hub/status``; a partition hub answers on its own)."""
         self.router = router
-        self.key = keys.hub("status")
+        self.key = key or keys.hub("status")
         self.snapshot = snapshot
         self.answered = 0
         # Answered in the Zenoh callback: a snapshot is a few reference copies.
@@ -57,11 +59,16 @@ class StatusService:
         return None
 
 
-def query_status(session: Any, keys: SiteKeys, timeout_s: float = 5.0) -> dict[str, Any] | None:
-    """Ask the hub for its status; None when no hub answers within `timeout_s`."""
+def query_status(
+    session: Any, keys: SiteKeys, timeout_s: float = 5.0, key: str | None = None
+) -> dict[str, Any] | None:
+    """Ask the hub (or at `key`, a partition hub) for its status; None when none answers within
+    `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while True:
-        for reply in session.get(keys.hub("status"), timeout=max(0.5, deadline - time.monotonic())):
+        for reply in session.get(
+            key or keys.hub("status"), timeout=max(0.5, deadline - time.monotonic())
+        ):
             if reply.ok is not None:
                 out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
                 return out

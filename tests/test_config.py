@@ -159,6 +159,17 @@ BAD: dict[str, tuple[str, str]] = {
         "nodes.wec.streams.t8.sample_format",
         "'float64' or 'float32'",
     ),
+    "bad_partition_names_no_node.yaml": ("hub.partitions.bay2.nodes[1]", "'cell-9' names no node"),
+    "bad_partition_node_in_two.yaml": (
+        "hub.partitions.b.nodes[0]",
+        "node 'cell-2' is already recorded by partition 'a'",
+    ),
+    "bad_partition_same_listen.yaml": ("hub.partitions.bay2.listen[0]", "is also hub.listen"),
+    "bad_partition_with_tls.yaml": ("hub.partitions", "not supported with security.tls on yet"),
+    "bad_partition_channel_alarm.yaml": (
+        "alarms.hot",
+        "channel cell-1/daq/load is recorded by partition 'bay2'",
+    ),
 }
 
 GOOD = sorted(p.name for p in (REPO / DATA).glob("good_*.yaml"))

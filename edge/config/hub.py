@@ -13,7 +13,7 @@ from edge.config.alarms import Severity, UniversalAlarms
 from edge.config.control import InterlockConfig, RuleName
 from edge.config.dashboard import DashboardConfig
 from edge.config.notify import NotifyConfig
-from edge.schema import Endpoints, Float, Int, Strict
+from edge.schema import Endpoints, Float, Int, Name, Strict
 
 
 class RecorderConfig(Strict):
@@ -56,9 +56,30 @@ class SnapshotConfig(Strict):
     merged)."""
 
 
+NodePattern = Annotated[str, Field(pattern=r"^[a-z0-9_*?\[\]!-]{1,63}$")]
+"""A node name or an fnmatch pattern over node names."""
+
+
+class PartitionConfig(Strict):
+    """A partition hub (`fleetdaq hub --partition NAME`): its own router, meshed with the main
+    hub's and the other partitions', recording and acking only the streams of its nodes."""
+
+    listen: Endpoints
+    """Its router's endpoints: its nodes connect here, and so do the routers of the hubs listed
+    after it (the main hub first, then the partitions in file order)."""
+    nodes: Annotated[list[NodePattern], Field(min_length=1)]
+    """Node names or fnmatch patterns (``cell-*``); every node they match is this hub's."""
+    data_dir: str | None = None
+    """Recording root of this hub (default: ``<the main hub's data_dir>/<partition name>``, so
+    two hubs on one machine never share a session folder; `fleetdaq hub --data` overrides)."""
+
+
 class HubConfig(Strict):
     listen: Endpoints = ["tcp/127.0.0.1:7447"]
     """The embedded router's endpoints; edges connect to these unless a node says otherwise."""
+    partitions: dict[Name, PartitionConfig] = {}
+    """More hubs, each recording a slice of the nodes (`PartitionConfig`); nodes no partition
+    names are the main hub's. Empty: one hub records everything."""
     data_dir: str | None = None
     """Recording root. Default: the per-system location of `edge.paths.default_data_dir`
     (never the current directory); `fleetdaq hub --data` overrides."""

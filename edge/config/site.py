@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from fnmatch import fnmatchcase
 from importlib.resources import files
 from pathlib import Path
 from typing import Annotated, Any
@@ -30,6 +31,42 @@ class SiteConfig(Strict):
     """Control rules evaluated on the hub (`edge.config.control`)."""
     security: SecurityConfig = SecurityConfig()
     """Mutual TLS and access control (`edge.config.security`)."""
+
+    @model_validator(mode="after")
+    def _partitions_slice_the_nodes(self) -> SiteConfig:
+        parts = self.hub.partitions
+        if not parts:
+            return self
+        if self.security.tls:
+            raise ValueError(
+                "hub.partitions: not supported with security.tls on yet (the routers' access "
+                "control has no rules for the links between hubs); run one hub, or tls off"
+            )
+        owner: dict[str, str] = {}
+        listened = {e: "hub.listen" for e in self.hub.listen}
+        for name, part in parts.items():
+            for i, pattern in enumerate(part.nodes):
+                where = f"hub.partitions.{name}.nodes[{i}]"
+                matched = [n for n in self.nodes if fnmatchcase(n, pattern)]
+                if not matched:
+                    raise ValueError(
+                        f"{where}: {pattern!r} names no node (nodes: {', '.join(self.nodes)})"
+                    )
+                for node in matched:
+                    if owner.get(node, name) != name:
+                        raise ValueError(
+                            f"{where}: node {node!r} is already recorded by partition "
+                            f"{owner[node]!r} (a node belongs to exactly one hub)"
+                        )
+                    owner[node] = name
+            for i, endpoint in enumerate(part.listen):
+                if endpoint in listened:
+                    raise ValueError(
+                        f"hub.partitions.{name}.listen[{i}]: {endpoint!r} is also "
+                        f"{listened[endpoint]} (every hub has a router of its own)"
+                    )
+                listened[endpoint] = f"hub.partitions.{name}.listen"
+        return self
 
     @model_validator(mode="after")
     def _tls_everywhere(self) -> SiteConfig:
@@ -84,8 +121,57 @@ class SiteConfig(Strict):
                     raise ValueError(f"{where}: node {node!r} has no output {output!r}")
         return self
 
+    @model_validator(mode="after")
+    def _main_hub_sees_what_it_evaluates(self) -> SiteConfig:
+        # Channel alarms, rules and interlocks run on the main hub, over the batches it
+        # receives; a partition's batches stay on its router (only what is small crosses the
+        # mesh), so a channel of a partition's node cannot be watched there.
+        if not self.hub.partitions:
+            return self
+        refs = [(f"alarms.{n}", getattr(spec, "channel", None)) for n, spec in self.alarms.items()]
+        for where, trees, _, _ in _control_parts(self):
+            refs += [(where, ch) for tree in trees for ch in referenced(tree)[0]]
+        for where, channel in refs:
+            part = self.partition_of(channel.split("/")[0]) if channel else None
+            if part is not None:
+                raise ValueError(
+                    f"{where}: channel {channel} is recorded by partition {part!r}; channel "
+                    "alarms, rules and interlocks run on the main hub, which does not receive "
+                    "a partition's batches (watch its stream or node health, or record the "
+                    "node on the main hub)"
+                )
+        return self
+
     def endpoints_for(self, node: str) -> list[str]:
-        return self.nodes[node].connect or list(self.hub.listen)
+        """The router a node connects to: its own `connect`, else its hub's `listen`."""
+        if self.nodes[node].connect:
+            return list(self.nodes[node].connect or [])
+        part = self.partition_of(node)
+        return list(self.hub.partitions[part].listen if part else self.hub.listen)
+
+    def partition_of(self, node: str) -> str | None:
+        """The partition hub that records `node`; None: the main hub."""
+        for name, part in self.hub.partitions.items():
+            if any(fnmatchcase(node, pattern) for pattern in part.nodes):
+                return name
+        return None
+
+    def nodes_of(self, partition: str | None) -> list[str]:
+        """The nodes whose streams a hub records and acks (None: the main hub), in file order."""
+        return [n for n in self.nodes if self.partition_of(n) == partition]
+
+    def mesh_connect(self, partition: str | None) -> list[str]:
+        """The routers a hub's router connects to: every hub listed before it (the main hub
+        first, then the partitions in file order), so each pair of routers has one link and the
+        routers form a full mesh; Zenoh reconnects a link by itself when a router returns."""
+        if partition is None:
+            return []
+        out = list(self.hub.listen)
+        for name, part in self.hub.partitions.items():
+            if name == partition:
+                return out
+            out += part.listen
+        raise KeyError(partition)
 
 
 def demo_config_path() -> Path:

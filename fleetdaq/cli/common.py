@@ -100,13 +100,18 @@ def hub_request(
     what: str,
     body: dict[str, Any] | None,
     timeout: float = 10.0,
+    partition: str | None = None,
 ) -> dict[str, Any]:
     """Ask the hub's ``fleetdaq/<site>/hub/<what>`` (a JSON request, a JSON reply); one line and
-    exit 2 when no hub answers."""
+    exit 2 when no hub answers. With `partition`, through that partition hub's router."""
     import json
 
     site = load_site(config)
-    endpoints = list(connect) or list(site.hub.listen)
+    if partition is not None and partition not in site.hub.partitions:
+        named = ", ".join(site.hub.partitions) or "none"
+        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+    own = site.hub.partitions[partition].listen if partition is not None else site.hub.listen
+    endpoints = list(connect) or list(own)
     session = open_client(endpoints, site=site)
     payload = json.dumps(body).encode() if body is not None else None
     try:

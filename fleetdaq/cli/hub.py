@@ -30,6 +30,11 @@ running on looking healthy."""
 )
 @click.option("--listen", multiple=True, help="Router endpoint(s), overriding the site file.")
 @click.option(
+    "--partition",
+    help="Run the partition hub NAME of the site file's hub.partitions (its router meshed with "
+    "the other hubs', recording only its nodes) instead of the main hub.",
+)
+@click.option(
     "--summary",
     "summary_path",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -40,10 +45,12 @@ def hub(
     config: str,
     data_dir: str | None,
     listen: tuple[str, ...],
+    partition: str | None,
     summary_path: Path | None,
     verbose: bool,
 ) -> None:
-    """Run the hub until SIGTERM or Ctrl-C (exit 3 if one of its services fails)."""
+    """Run the hub (or with --partition, a partition hub) until SIGTERM or Ctrl-C (exit 3 if
+    one of its services fails)."""
     stop = stop_on_signals()
     site = load_site(config)
     if listen:
@@ -54,12 +61,21 @@ def hub(
                 check_endpoint(endpoint)
             except ValueError as err:
                 fail(f"--listen: {err}")
+    if partition is not None and partition not in site.hub.partitions:
+        named = ", ".join(site.hub.partitions) or "none"
+        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
     setup_logging(verbose)
     from hub.errors import HubError, RouterError, SecretError
+    from hub.partition import PartitionRuntime
     from hub.runtime import HubRuntime
 
     check_tls(config, site, "hub")
-    runtime = HubRuntime(site, Path(data_dir) if data_dir else None, list(listen) or None)
+    data = Path(data_dir) if data_dir else None
+    runtime: HubRuntime | PartitionRuntime = (
+        HubRuntime(site, data, list(listen) or None)
+        if partition is None
+        else PartitionRuntime(site, partition, data, list(listen) or None)
+    )
     code = 0
     try:
         with runtime:

@@ -24,7 +24,7 @@ def _size(n: int) -> str:
     return f"{x:.1f} TB"
 
 
-def _show(reply: dict[str, Any]) -> None:
+def _show(reply: dict[str, Any], partition: bool = False) -> None:
     r, s = reply["recorder"], reply.get("snapshots") or {}
     click.echo(f"recorder     {r['state']}")
     click.echo(f"session      {r['session'] or '-'}  ({r['session_dir'] or '-'})")
@@ -43,6 +43,8 @@ def _show(reply: dict[str, Any]) -> None:
             f"({_size(s['held_bytes'])} of {_size(s['max_bytes'])}); "
             f"{s['written']} written" + (f", last {s['last']}" if s["last"] else "")
         )
+    elif partition:
+        click.echo("snapshot     on the main hub (a partition hub keeps none)")
     else:
         click.echo("snapshot     switched off (hub.snapshot.enabled)")
 
@@ -53,6 +55,16 @@ def _common(f: Any) -> Any:
     )
     f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
     return f
+
+
+def _partition_status(config: str, connect: tuple[str, ...], name: str, as_json: bool) -> None:
+    """A partition hub's recorder, from its status request (it takes no recorder requests)."""
+    reply = hub_request(config, connect, f"partition/{name}/status", None, partition=name)
+    if as_json:
+        click.echo(json.dumps(reply, indent=2))
+    else:
+        _show(reply, partition=True)
+    sys.exit(0)
 
 
 def _act(config: str, connect: tuple[str, ...], action: str, note: str, as_json: bool) -> None:
@@ -84,7 +96,20 @@ def _action(name: str, doc: str) -> None:
         _act(config, connect, name, note, as_json)
 
 
-_action("status", "State, session, current file and size, files, the snapshot buffer.")
+@rec.command("status")
+@_common
+@click.option("--note", default="", help="Why (in the event and the snapshot's metadata).")
+@click.option("--json", "as_json", is_flag=True, help="The hub's whole answer as JSON.")
+@click.option("--partition", help="The partition hub NAME's recorder (hub.partitions).")
+def status(
+    config: str, connect: tuple[str, ...], note: str, as_json: bool, partition: str | None
+) -> None:
+    """State, session, current file and size, files, the snapshot buffer."""
+    if partition is not None:
+        _partition_status(config, connect, partition, as_json)
+    _act(config, connect, "status", note, as_json)
+
+
 _action(
     "start",
     "Start recording into a new session folder.",

@@ -1,6 +1,7 @@
 """The fleet's Ansible YAML inventory, read into typed hosts.
 
-The same file Ansible deploys with (``ansible-playbook -i``): groups ``hub`` (one host),
+The same file Ansible deploys with (``ansible-playbook -i``): groups ``hub`` (one host, plus
+one per partition hub, each with ``fleetdaq_partition: NAME``),
 ``edges`` and ``ptp_grandmaster``, connection variables (``ansible_host``, ``ansible_port``,
 ``ansible_user``, ``ansible_ssh_private_key_file``) and fleetdaq's own (``fleetdaq_node``,
 ``fleetdaq_site_file``, ``fleetdaq_venv``, ...; see `Host`). Variables are resolved as Ansible
@@ -76,6 +77,9 @@ class Host:
     """``fleetdaq_spool_dir``: the spool root, when neither the site file nor the default."""
     data_dir: str | None = None
     """``fleetdaq_data_dir``: the hub's recording root, likewise."""
+    partition: str | None = None
+    """``fleetdaq_partition``: on a host of the hub group, the partition hub it runs (the site
+    file's ``hub.partitions``); None: the main hub."""
     ptp_interface: str | None = None
     """``fleetdaq_ptp_interface``: the host runs ``ptp4l@<interface>``."""
     ptp_timestamping: str = "software"
@@ -111,7 +115,8 @@ class Inventory:
 
     @property
     def hub(self) -> Host:
-        return next(h for h in self.hosts if h.is_hub)
+        """The main hub."""
+        return next(h for h in self.hosts if h.is_hub and h.partition is None)
 
     @property
     def edges(self) -> tuple[Host, ...]:
@@ -335,6 +340,7 @@ def _build(reader: _Reader, hd: _HostDef) -> Host | None:
         state_dir=paths["fleetdaq_state_dir"] or DEFAULT_STATE_DIR,
         spool_dir=paths["fleetdaq_spool_dir"],
         data_dir=paths["fleetdaq_data_dir"],
+        partition=_text(reader, vars_, "fleetdaq_partition") if HUB in fleet else None,
         ptp_interface=interface,
         ptp_timestamping=timestamping,
     )
@@ -364,10 +370,21 @@ def load_inventory(path: str | Path) -> Inventory:
     reader.read(doc)
     reader.resolve_depths()
     hosts = [h for h in (_build(reader, hd) for hd in reader.hosts.values()) if h is not None]
-    hubs = [h for h in hosts if h.is_hub]
+    hubs = [h for h in hosts if h.is_hub and h.partition is None]
     if len(hubs) != 1:
         found = ", ".join(h.name for h in hubs) or "none"
-        raise reader.fail(_group_where(reader, HUB), f"the hub group has one host (found: {found})")
+        raise reader.fail(
+            _group_where(reader, HUB),
+            f"the hub group has one main hub (found: {found}); any other hub host names the "
+            "partition it runs (fleetdaq_partition)",
+        )
+    partitions: dict[str, Host] = {}
+    for h in hosts:
+        if h.partition is not None:
+            if h.partition in partitions:
+                other = partitions[h.partition].name
+                raise reader.fail(h.where, f"partition {h.partition!r} is already run by {other}")
+            partitions[h.partition] = h
     nodes: dict[str, Host] = {}
     for h in hosts:
         if h.is_edge:

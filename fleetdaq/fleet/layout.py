@@ -65,7 +65,12 @@ def layout_for(host: Host, site: SiteConfig | None) -> HostLayout:
         spool = host.on_host(posixpath.join(root, host.node))
     if host.is_hub:
         configured = site.hub.data_dir if site is not None else None
-        data = host.on_host(host.data_dir or configured or posixpath.join(host.state_dir, "data"))
+        root = configured or posixpath.join(host.state_dir, "data")
+        if host.partition is not None:  # as `hub.partition.partition_data_dir`
+            part = site.hub.partitions.get(host.partition) if site is not None else None
+            own = part.data_dir if part is not None else None
+            root = own or posixpath.join(root, host.partition)
+        data = host.on_host(host.data_dir or root)
     units: list[str] = []
     if host.is_hub:
         units.append(HUB_UNIT)

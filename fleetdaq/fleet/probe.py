@@ -138,6 +138,8 @@ class _Probe:
 
     def recorder(self) -> None:
         args = [self.layout.fleetdaq, "rec", "status", "--json", "--config", self.layout.site_file]
+        if self.host.partition is not None:  # a partition hub's own recorder
+            args += ["--partition", self.host.partition]
         status, out, err = self.run(*args)
         try:
             view = parse_recorder(out)

@@ -172,6 +172,30 @@ def test_the_layout_follows_the_inventory_then_the_site_then_the_defaults(tmp_pa
     assert layout_for(by["ctl"], cfg).data_dir == "/rec"
 
 
+def test_a_partition_hub_host_records_under_its_own_folder_and_is_not_the_main_hub(
+    tmp_path: Path,
+):
+    path = tmp_path / "inventory.yml"
+    path.write_text(
+        "all:\n  children:\n    hub:\n      hosts:\n        ctl: {}\n"
+        "        ctl2: {fleetdaq_partition: bay2}\n"
+    )
+    inv = load_inventory(path)
+    assert inv.hub.name == "ctl"
+    by = {h.name: h for h in inv.hosts}
+    assert by["ctl2"].partition == "bay2"
+    site = tmp_path / "site.yaml"
+    site.write_text(
+        "site: s\nhub:\n  partitions:\n    bay2: {listen: [tcp/10.0.0.2:7447], nodes: [b]}\n"
+        "nodes:\n  a: &n\n    streams: {env: {driver: environment_sim, rate_hz: 1,"
+        " channels: [{name: air, unit: degC}]}}\n  b: *n\n"
+    )
+    cfg = load_config(site)
+    assert layout_for(by["ctl"], cfg).data_dir == "/var/lib/fleetdaq/data"
+    assert layout_for(by["ctl2"], cfg).data_dir == "/var/lib/fleetdaq/data/bay2"
+    assert layout_for(by["ctl2"], cfg).units == ("fleetdaq-hub",)
+
+
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
@@ -182,9 +206,12 @@ def test_the_layout_follows_the_inventory_then_the_site_then_the_defaults(tmp_pa
         ("all:\n  children:\n    hub:\n      host:\n        h: {}\n",
          "all.children.hub.host: unknown key"),
         ("all:\n  children:\n    hub:\n      hosts:\n        a: {}\n        b: {}\n",
-         "all.children.hub.hosts: the hub group has one host (found: a, b)"),
+         "all.children.hub.hosts: the hub group has one main hub (found: a, b)"),
+        ("all:\n  children:\n    hub:\n      hosts:\n        a: {}\n"
+         "        b: {fleetdaq_partition: p}\n        c: {fleetdaq_partition: p}\n",
+         "all.children.hub.hosts.c: partition 'p' is already run by b"),
         ("all:\n  children:\n    edges:\n      hosts:\n        a: {}\n",
-         "the hub group has one host (found: none)"),
+         "the hub group has one main hub (found: none)"),
         ("all:\n  children:\n    hub:\n      hosts:\n        h: {}\n        h: {}\n",
          ":6: duplicate key 'h' (first on line 5)"),
         ("all:\n  vars:\n    fleetdaq_venv: '{{ venv }}'\n  children:\n    hub:\n"

@@ -1,0 +1,458 @@
+"""Partitioned hubs: several hubs, each recording a slice of the nodes, their routers meshed.
+
+The site file's ``hub.partitions`` names the extra hubs (`edge.config.hub.PartitionConfig`);
+every node belongs to exactly one hub (`SiteConfig.partition_of`) and connects to that hub's
+router. A hub subscribes to the data of its own nodes only and acks only them, so each stream
+is acked by exactly one hub and no batch crosses the mesh. The scale-out is Zenoh's own: the
+routers link to each other (`SiteConfig.mesh_connect`) and route each key to whoever
+subscribes; nothing here relays data.
+
+What crosses the mesh is small:
+
+- every node's health, events and liveliness token, which the main hub watches for the whole
+  fleet (its node watch subscribes with wildcards);
+- the main hub's heartbeat, which every edge's dead-man hears (outputs are the main hub's:
+  rules and commands run there, and a command to a partition's node travels over the mesh);
+- each partition hub's report, about once a second on ``hub/partition/<name>/report``: its
+  streams' accounting and its recorder's state, as JSON (like ``hub/status``), and its own
+  events on ``hub/partition/<name>/events``; its liveliness token
+  ``hub/partition/<name>/alive`` tells the main hub that it is there.
+
+A partition hub runs the router, the event bus and events.log, the recorder, the node watch of
+its slice, its own health, the report and a status request on ``hub/partition/<name>/status``.
+Supervision (alarms, notifications), rules, commands, snapshots and the dashboard run on the
+main hub only (`PartitionWatch` puts the partitions' streams into its read model, so the
+stream alarms, the dashboard and ``hub/status`` cover the whole fleet).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import threading
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import zenoh
+
+from edge.cdr import decode, encode
+from edge.config.site import SiteConfig
+from edge.errors import WireError
+from edge.keys import SiteKeys
+from edge.messages import Event
+from edge.paths import default_data_dir
+from edge.systemd import Systemd
+from hub.bus import EventBus
+from hub.event_log import EventLog
+from hub.hub_health import HubHealth
+from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
+from hub.read_model import HubView, ReadModel, StreamView, to_jsonable
+from hub.recorder import Recorder
+from hub.refused import RefusedKeys
+from hub.router import Router
+from hub.services import ServiceStack
+from hub.status import StatusService
+
+log = logging.getLogger("fleetdaq.hub")
+
+REPORT_PERIOD_S = 1.0
+
+
+def partition_key(keys: SiteKeys, name: str, what: str) -> str:
+    """``fleetdaq/<site>/hub/partition/<name>/<what>`` (report, events, alive, status)."""
+    return keys.hub(f"partition/{name}/{what}")
+
+
+def partition_event_node(name: str) -> str:
+    """The `node` of a partition hub's own events (the main hub's are ``hub``)."""
+    return f"hub/{name}"
+
+
+def partition_data_dir(site: SiteConfig, name: str, override: Path | None = None) -> Path:
+    """Where a partition hub records: `--data`, else its `data_dir`, else a folder named after
+    it in the main hub's recording root (two hubs never share session folders)."""
+    if override is not None:
+        return override
+    own = site.hub.partitions[name].data_dir
+    if own:
+        return Path(own)
+    main = site.hub.data_dir
+    return (Path(main) if main else default_data_dir()) / name
+
+
+# --- on a partition hub ------------------------------------------------------------------------
+
+
+class PartitionReport:
+    """A partition hub's presence on the mesh: its liveliness token, its report about once a
+    second and its own events, for the main hub's `PartitionWatch`."""
+
+    name = "partition-report"
+
+    def __init__(
+        self,
+        router: Router,
+        keys: SiteKeys,
+        partition: str,
+        model: ReadModel,
+        bus: EventBus,
+        period_s: float = REPORT_PERIOD_S,
+    ) -> None:
+        self.router = router
+        self.partition = partition
+        self.model = model
+        self.period_s = period_s
+        self.report_key = partition_key(keys, partition, "report")
+        self.events_key = partition_key(keys, partition, "events")
+        self.alive_key = partition_key(keys, partition, "alive")
+        self.own = partition_event_node(partition)
+        self.reports = 0
+        self._token: Any = None
+        self._pubs: dict[str, Any] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="partition-report", daemon=True)
+        self._died: str | None = None
+        self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=10_000)
+
+    def start(self) -> None:
+        session = self.router.session
+        self._pubs = {
+            "report": session.declare_publisher(self.report_key),
+            "events": session.declare_publisher(self.events_key),
+        }
+        self._token = session.liveliness().declare_token(self.alive_key)
+        self._thread.start()
+
+    def report(self) -> bytes:
+        view = self.model.snapshot(time.time_ns())
+        return json.dumps(
+            {
+                "partition": self.partition,
+                "time_ns": view.time_ns,
+                "streams": to_jsonable(view.streams),
+                "recorder": to_jsonable(view.recorder),
+            },
+            separators=(",", ":"),
+        ).encode()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                self._pubs["report"].put(self.report())
+                self.reports += 1
+                if self._stop.wait(self.period_s):
+                    return
+        except Exception as err:
+            self._died = f"the partition report thread died: {err!r}"
+            log.critical("%s", self._died, exc_info=True)
+
+    def _on_event(self, e: Event) -> None:
+        # Only this hub's own events: its nodes' events reach the main hub directly.
+        pub = self._pubs.get("events")
+        if e.node == self.own and pub is not None:
+            pub.put(encode(e))
+
+    def stop(self) -> None:
+        self._bus_sub.flush()
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5.0)
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        pubs, self._pubs = self._pubs, {}
+        for pub in pubs.values():
+            pub.undeclare()
+
+    def failure(self) -> str | None:
+        return self._died
+
+
+class PartitionRuntime:
+    """A partition hub (`fleetdaq hub --partition NAME`): a context manager, like `HubRuntime`,
+    with the services a partition hub runs (see the module's docstring), composed here."""
+
+    def __init__(
+        self,
+        site: SiteConfig,
+        partition: str,
+        data_dir: Path | None = None,
+        listen: list[str] | None = None,
+    ) -> None:
+        if partition not in site.hub.partitions:
+            raise KeyError(partition)
+        self.site = site
+        self.partition = partition
+        self.listen = listen or list(site.hub.partitions[partition].listen)
+        self.data_dir = partition_data_dir(site, partition, data_dir)
+        self.keys = SiteKeys(site.site)
+        self.model = ReadModel(site.site)
+        self.bus = EventBus(node=partition_event_node(partition))
+        self.refused = RefusedKeys(self.bus, self.model)
+        self.router = Router(self.listen, site, connect=site.mesh_connect(partition))
+        self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
+        self.recorder = Recorder(
+            self.router,
+            site,
+            self.data_dir,
+            self.bus,
+            self.model,
+            self.refused,
+            partition=partition,
+        )
+        self.nodes = NodeWatch(
+            self.router,
+            site,
+            self.bus,
+            self.model,
+            self.recorder,
+            self.refused,
+            partition=partition,
+        )
+        self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
+        self.status = StatusService(
+            self.router,
+            self.keys,
+            self.snapshot,
+            site.security,
+            key=partition_key(self.keys, partition, "status"),
+        )
+        self.services = ServiceStack(
+            [
+                self.router,
+                _BusService(self.bus),
+                self.event_log,
+                self.recorder,
+                self.nodes,
+                self.hub_health,
+                self.report,
+                self.status,
+            ]
+        )
+        self.started = False
+        self.systemd = Systemd()
+
+    def __enter__(self) -> PartitionRuntime:
+        self.start()
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def start(self) -> None:
+        self.services.start()
+        self.started = True
+        self.systemd.beats.append(self.recorder.beat)
+        self.systemd.status_of = self.status_line
+        self.systemd.ready(self.status_line())
+        session = self.recorder.session
+        assert session is not None
+        self.bus.emit(
+            logging.INFO,
+            "hub",
+            "started",
+            f"partition hub {self.partition} started: site {self.site.site}, listening on "
+            f"{', '.join(self.listen)}, meshed with {', '.join(self.router.connect)}, "
+            f"recording {', '.join(self.recorder.nodes)} into session {session.name}",
+            session=session.name,
+        )
+        log.info(
+            "partition hub %r of site %r listening on %s, recording %s into %s",
+            self.partition,
+            self.site.site,
+            self.listen,
+            self.recorder.nodes,
+            session.dir,
+        )
+
+    def status_line(self) -> str:
+        view = self.snapshot()
+        r = view.recorder
+        alive = sum(n.alive for n in view.nodes)
+        return (
+            f"partition {self.partition}: {r.state} {r.session or '-'}, "
+            f"{r.bytes_written / 1e9:.2f} GB written; {alive}/{len(view.nodes)} nodes alive"
+        )
+
+    def close(self) -> None:
+        if self.started:
+            self.systemd.stopping("stopping: closing files")
+        self.services.stop()
+        self.refused.publish()
+
+    def failures(self) -> list[tuple[str, str]]:
+        return self.services.failures()
+
+    def snapshot(self) -> HubView:
+        view = self.model.snapshot(time.time_ns())
+        failures = tuple(self.failures()) if self.started else ()
+        return dataclasses.replace(view, failures=failures)
+
+    def summary(self) -> dict[str, Any]:
+        out = self.recorder.summary()
+        out["partition"] = self.partition
+        out["events"] = dict(self.event_log.counts)
+        out["failures"] = [f"{name}: {why}" for name, why in self.failures()]
+        return out
+
+
+class _BusService:
+    name = "event-bus"
+
+    def __init__(self, bus: EventBus) -> None:
+        self.bus = bus
+
+    def start(self) -> None:
+        self.bus.start()
+
+    def stop(self) -> None:
+        self.bus.stop()
+
+    def failure(self) -> str | None:
+        dead = self.bus.dead()
+        return f"event subscriber thread(s) died: {', '.join(dead)}" if dead else None
+
+
+# --- on the main hub ---------------------------------------------------------------------------
+
+
+class PartitionWatch:
+    """The main hub's view of the partition hubs: whether each is there (its liveliness token),
+    its streams' accounting (into the read model next to the main hub's own, marked with the
+    hub that records them) and its recorder, and its events onto the main hub's bus."""
+
+    name = "partition-watch"
+
+    def __init__(self, router: Router, site: SiteConfig, bus: EventBus, model: ReadModel) -> None:
+        self.router = router
+        self.keys = SiteKeys(site.site)
+        self.bus = bus
+        self.model = model
+        self.owned = {name: set(site.nodes_of(name)) for name in site.hub.partitions}
+        """The nodes each partition records: the only streams its report may speak for."""
+        self._lock = threading.Lock()
+        self._streams: dict[str, tuple[StreamView, ...]] = {}
+        self._state: dict[str, dict[str, Any]] = {
+            name: {"alive": False, "report_received_ns": 0, "recorder": {}} for name in self.owned
+        }
+        self.malformed = 0
+        self._subs: list[Any] = []
+
+    def start(self) -> None:
+        session = self.router.session
+        self._publish()
+        any_part = partition_key(self.keys, "*", "")
+        self._subs = [
+            session.declare_subscriber(any_part + "report", self._on_report),
+            session.declare_subscriber(any_part + "events", self._on_event),
+            session.liveliness().declare_subscriber(
+                any_part + "alive", self._on_alive, history=True
+            ),
+        ]
+
+    def stop(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        self._subs = []
+
+    def failure(self) -> str | None:
+        return None
+
+    def _partition_of(self, sample: Any, what: str) -> str | None:
+        key = str(sample.key_expr)
+        parts = key.split("/")
+        name = parts[-2] if len(parts) >= 2 and parts[-1] == what else ""
+        if name not in self.owned:
+            self.malformed += 1
+            return None
+        return name
+
+    def _on_alive(self, sample: Any) -> None:
+        name = self._partition_of(sample, "alive")
+        if name is None:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            changed = self._state[name]["alive"] != alive
+            self._state[name]["alive"] = alive
+        if not changed:
+            return
+        self._publish()
+        self.bus.emit(
+            logging.INFO if alive else logging.ERROR,
+            "hub",
+            "partition_up" if alive else "partition_gone",
+            f"partition hub {name}: "
+            + (
+                "connected"
+                if alive
+                else "gone; its nodes spool until it returns ("
+                + ", ".join(sorted(self.owned[name]))
+                + ")"
+            ),
+            partition=name,
+        )
+
+    def _on_report(self, sample: Any) -> None:
+        name = self._partition_of(sample, "report")
+        if name is None:
+            return
+        payload = sample.payload.to_bytes()
+        try:
+            if len(payload) > MAX_PAYLOAD_BYTES:
+                raise ValueError(f"{len(payload)} bytes")
+            report = json.loads(payload)
+            streams = tuple(
+                dataclasses.replace(StreamView(**s), hub=name)
+                for s in report["streams"]
+                if s["node"] in self.owned[name]
+            )
+            recorder = dict(report["recorder"])
+        except (ValueError, TypeError, KeyError) as err:
+            self.malformed += 1
+            if self.malformed == 1 or self.malformed % 1000 == 0:
+                self.bus.emit(
+                    logging.WARNING,
+                    "hub",
+                    "malformed",
+                    f"partition hub {name}: refused a report that is not valid ({err!r}); "
+                    f"{self.malformed} so far",
+                    partition=name,
+                )
+            return
+        with self._lock:
+            self._streams[name] = streams
+            self._state[name]["report_received_ns"] = time.time_ns()
+            self._state[name]["recorder"] = recorder
+        self._publish()
+
+    def _on_event(self, sample: Any) -> None:
+        name = self._partition_of(sample, "events")
+        if name is None:
+            return
+        payload = sample.payload.to_bytes()
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.malformed += 1
+            return
+        try:
+            event = decode(payload, Event)
+        except WireError:
+            self.malformed += 1
+            return
+        if event.node != partition_event_node(name):
+            self.malformed += 1
+            return
+        self.bus.publish(event)
+
+    def _publish(self) -> None:
+        with self._lock:
+            streams = tuple(s for name in sorted(self._streams) for s in self._streams[name])
+            state = {name: dict(s) for name, s in self._state.items()}
+        self.model.put("partition_streams", streams)
+        self.model.put("partitions", state)

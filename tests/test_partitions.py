@@ -1,0 +1,284 @@
+"""Partitioned hubs: a main hub and a partition hub, their routers meshed, and four edges, as
+separate OS processes on loopback. Each hub records exactly its slice with no gap; with the
+partition hub down its edges spool and replay into it when it returns, while the main hub's
+slice records on untouched. The main hub sees the whole fleet through the mesh."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rosbags.highlevel import AnyReader
+
+from edge.config.load import load_config
+from edge.keys import SiteKeys
+from hub.partition import partition_key
+from hub.status import query_status
+from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_until
+
+REPO = Path(__file__).resolve().parent.parent
+
+SITE = """\
+site: parts
+hub:
+  listen: [tcp/127.0.0.1:{main}]
+  recorder: {{file_duration_s: 5, flush_interval_s: 0.5}}
+  partitions:
+    bay2:
+      listen: [tcp/127.0.0.1:{bay2}]
+      nodes: ["cell-*"]
+nodes:
+{nodes}
+"""
+NODE = """\
+  {name}:
+    spool: {{replay_after_s: 2, fsync_interval_s: 0.5}}
+    streams:
+      wave:
+        driver: wave_sim          # 2 x 1 kS/s, 100 ms batches
+        rate_hz: 1000
+        channels: [{{name: c0, unit: V}}, {{name: c1, unit: V}}]
+"""
+MAIN_SLICE = ("wec-a", "wec-b")
+BAY2_SLICE = ("cell-a", "cell-b")
+
+
+@dataclass
+class Rig:
+    tmp: Path
+    cfg: Path
+    main_port: int
+    procs: list[Proc] = field(default_factory=list)
+    bay2_runs: int = 0
+    _client: HubClient | None = None
+
+    @property
+    def client(self) -> HubClient:
+        """A session on the main hub's router: the partition hub answers through the mesh."""
+        if self._client is None:
+            self._client = HubClient(self.main_port, "parts")
+        return self._client
+
+    def main_hub(self) -> Proc:
+        p = self._proc(["hub", "--data", str(self.tmp / "main")], "main", "main")
+        wait_until(self.client.status, 60, "the main hub to answer its status request")
+        return p
+
+    def bay2_hub(self) -> Proc:
+        self.bay2_runs += 1
+        p = self._proc(
+            ["hub", "--partition", "bay2", "--data", str(self.tmp / "bay2")],
+            f"bay2-{self.bay2_runs}",
+            f"bay2-{self.bay2_runs}",
+        )
+        wait_until(self.bay2_status, 60, "the partition hub to answer through the mesh")
+        return p
+
+    def edge(self, node: str) -> Proc:
+        return self._proc(["edge", "--node", node, "--spool", str(self.tmp / "spool")], node)
+
+    def _proc(self, args: list[str], log: str, summary: str = "") -> Proc:
+        more = ["--summary", str(self.tmp / f"{summary}.json")] if summary else []
+        p = Proc([args[0], "--config", str(self.cfg), *args[1:], *more], self.tmp / f"{log}.log")
+        self.procs.append(p)
+        return p
+
+    def bay2_status(self) -> dict[str, Any] | None:
+        key = partition_key(SiteKeys("parts"), "bay2", "status")
+        return query_status(self.client.session, self.client.keys, 2.0, key=key)
+
+    def spool_bytes(self, node: str) -> int:
+        """What an edge's spool holds on disk (its segments), read from outside."""
+        return sum(f.stat().st_size for f in (self.tmp / "spool" / node).glob("*/*.seg"))
+
+    def summary(self, name: str) -> dict[str, Any]:
+        out: dict[str, Any] = json.loads((self.tmp / f"{name}.json").read_text())
+        return out
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    main, bay2 = free_port(), free_port()
+    nodes = "".join(NODE.format(name=n) for n in (*MAIN_SLICE, *BAY2_SLICE))
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(SITE.format(main=main, bay2=bay2, nodes=nodes))
+    r = Rig(tmp_path, cfg, main)
+    try:
+        yield r
+    finally:
+        for p in r.procs:
+            p.kill()
+        if r._client is not None:
+            r._client.close()
+
+
+def _acked(status: dict[str, Any], node: str) -> int:
+    view = stream_view(status, node, "wave")
+    return -1 if view is None or view["acked"] is None else int(view["acked"])
+
+
+def _edge_stream(status: dict[str, Any], node: str) -> dict[str, Any] | None:
+    """A node's `wave` stream as its own health says (relayed by the main hub's node watch),
+    with the health's time: {"time_ns": ..., "stream": StreamHealth as JSON}."""
+    n = next((n for n in status["nodes"] if n["node"] == node), None)
+    if n is None or n["health"] is None:
+        return None
+    st = next((s for s in n["health"]["streams"] if s["name"] == "wave"), None)
+    return None if st is None else {"time_ns": n["health"]["time_ns"], "stream": st}
+
+
+def _recorded(data: Path) -> dict[str, list[int]]:
+    """Sequence numbers per data topic over every file of every session under `data`."""
+    files = sorted(data.glob("*/*.mcap"))
+    assert files, f"nothing recorded under {data}"
+    out: dict[str, list[int]] = {}
+    with AnyReader(files) as reader:
+        conns = [c for c in reader.connections if c.topic.endswith("/wave")]
+        for c, _, raw in reader.messages(conns):
+            out.setdefault(c.topic, []).append(reader.deserialize(raw, c.msgtype).sequence)
+    return out
+
+
+def _contiguous(seqs: list[int]) -> bool:
+    return sorted(set(seqs)) == list(range(max(seqs) + 1))
+
+
+def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_own_hub(rig: Rig):
+    main = rig.main_hub()
+    bay2 = rig.bay2_hub()
+    edges = {node: rig.edge(node) for node in (*MAIN_SLICE, *BAY2_SLICE)}
+
+    # The main hub sees the whole fleet through the mesh: every node alive, its own streams
+    # acked by itself, bay2's as bay2's report says.
+    def fleet_up(s: dict[str, Any]) -> dict[str, Any] | None:
+        nodes = (*MAIN_SLICE, *BAY2_SLICE)
+        up = all(node_alive(s, n) for n in nodes) and all(_acked(s, n) >= 10 for n in nodes)
+        return s if up else None
+
+    status = rig.client.wait(fleet_up, 60, "all four nodes alive and acked on both hubs")
+    for node in BAY2_SLICE:
+        assert stream_view(status, node, "wave")["hub"] == "bay2"  # type: ignore[index]
+    for node in MAIN_SLICE:
+        assert stream_view(status, node, "wave")["hub"] == ""  # type: ignore[index]
+    assert status["partitions"]["bay2"]["alive"] is True
+    own = rig.bay2_status()
+    assert own is not None
+    assert {s["node"] for s in own["streams"]} == set(BAY2_SLICE)
+    # What `fleetdaq fleet status` runs on a partition hub's host: its own recorder.
+    args = ["rec", "status", "--json", "--config", str(rig.cfg), "--partition", "bay2"]
+    rec = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    recorder = json.loads(rec.stdout)["recorder"]
+    assert recorder["state"] == "recording"
+    assert Path(recorder["session_dir"]).parent == rig.tmp / "bay2"
+
+    # The partition hub goes away: its edges spool, the main slice records on.
+    main_before = {n: _acked(status, n) for n in MAIN_SLICE}
+    assert bay2.terminate() == 0
+    spooled_at_stop = {n: rig.spool_bytes(n) for n in BAY2_SLICE}
+    rig.client.wait(
+        lambda s: s["partitions"]["bay2"]["alive"] is False, 20, "the main hub to see bay2 gone"
+    )
+    wait_until(
+        lambda: all(rig.spool_bytes(n) > spooled_at_stop[n] + 20_000 for n in BAY2_SLICE),
+        30,
+        "bay2's edges to spool what no hub acks",
+    )
+    rig.client.wait(
+        lambda s: all(_acked(s, n) >= main_before[n] + 20 for n in MAIN_SLICE),
+        30,
+        "the main slice to go on being acked while bay2 is down",
+    )
+
+    # It returns: its edges replay into it, and catch up with live.
+    back_ns = time.time_ns()
+    bay2 = rig.bay2_hub()
+
+    def bay2_caught_up(s: dict[str, Any]) -> bool:
+        if not s["partitions"]["bay2"]["alive"]:
+            return False
+        for node in BAY2_SLICE:
+            health = _edge_stream(s, node)
+            if health is None or health["time_ns"] < back_ns:  # from before the outage
+                return False
+            st = health["stream"]
+            if st["spool_acked"] < st["next_sequence"] - 10:
+                return False
+        return True
+
+    rig.client.wait(bay2_caught_up, 60, "bay2's edges to replay into bay2 and catch up")
+    events = [e["tag"] for e in rig.client.status()["recent_events"]]  # type: ignore[index]
+    assert "partition_gone" in events
+    assert "partition_up" in events
+
+    for p in edges.values():
+        assert p.terminate() == 0
+    assert bay2.terminate() == 0
+    assert main.terminate() == 0
+
+    # Each hub holds exactly its slice, without a gap, across both runs of bay2.
+    main_rec = _recorded(rig.tmp / "main")
+    bay2_rec = _recorded(rig.tmp / "bay2")
+    assert set(main_rec) == {f"/{n}/wave" for n in MAIN_SLICE}
+    assert set(bay2_rec) == {f"/{n}/wave" for n in BAY2_SLICE}
+    assert len([d for d in (rig.tmp / "bay2").iterdir() if d.name[:1].isdigit()]) == 2
+    for topic, seqs in {**main_rec, **bay2_rec}.items():
+        assert _contiguous(seqs), f"{topic}: gaps in {len(seqs)} recorded batches"
+        assert len(seqs) == len(set(seqs)), f"{topic}: a batch recorded twice"
+    for node in MAIN_SLICE:
+        s = rig.summary("main")["streams"][f"{node}/wave"]
+        assert (s["gaps"], s["lost"], s["late"]) == (0, 0, 0), s  # untouched by bay2's outage
+        assert max(main_rec[f"/{node}/wave"]) >= main_before[node] + 20
+    for node in BAY2_SLICE:
+        seqs = bay2_rec[f"/{node}/wave"]
+        at_stop = max(rig.summary("bay2-1")["streams"][f"{node}/wave"]["last_sequence"], 0)
+        assert max(seqs) >= at_stop + 20, "the outage's batches were replayed into bay2"
+
+
+# --- the site file ---------------------------------------------------------------------------
+
+
+def test_each_node_connects_to_its_own_hubs_router_and_partitions_mesh_with_earlier_hubs():
+    site = load_config(REPO / "tests/data/config/good_partitions.yaml")
+    assert site.endpoints_for("wec-1") == ["tcp/10.0.0.1:7447"]
+    assert site.endpoints_for("cell-2") == ["tcp/10.0.0.2:7447"]
+    assert site.nodes_of(None) == ["wec-1", "wec-2"]
+    assert site.nodes_of("bay2") == ["cell-1", "cell-2"]
+    assert site.mesh_connect(None) == []
+    assert site.mesh_connect("bay2") == ["tcp/10.0.0.1:7447"]
+
+
+def test_a_site_without_partitions_is_one_hub_recording_every_node():
+    site = load_config(REPO / "tests/data/config/good_minimal.yaml")
+    assert site.nodes_of(None) == list(site.nodes)
+    assert site.mesh_connect(None) == []
+
+
+def test_an_unknown_partition_on_the_command_line_is_one_line_and_exit_2():
+    cfg = "tests/data/config/good_partitions.yaml"
+    run = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "hub", "--config", cfg, "--partition", "bay3"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert run.returncode == 2
+    assert run.stderr.strip().splitlines() == [
+        "--partition: tests/data/config/good_partitions.yaml has no partition 'bay3' in "
+        "hub.partitions (bay2)"
+    ]
