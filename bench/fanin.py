@@ -597,6 +597,9 @@ def run_step(n: int, args: argparse.Namespace, log: Progress) -> dict[str, Any]:
             start_s=rounded(start_s),
             hub_cpu_pct=rounded(hub_pct, 3),
             hub_cpu_pct_per_edge=rounded(hub_pct / n, 3),
+            # Where the hub alone would reach one core, if its cost stays linear in N: on this
+            # machine the N edges share the two cores with it, so the step limit comes sooner.
+            hub_one_core_n_estimate=round(100 * n / hub_pct) if hub_pct else None,
             hub_rss_mb=rounded(hub_rss, 3),
             hub_threads_cpu_s=hub_threads,
             edges_cpu_pct=rounded(100 * hosts_cpu / wall, 3),
@@ -746,6 +749,7 @@ def main() -> None:
             "latency_ms": best["latency_ms"] if best else None,
             "hub_cpu_per_mb_vs_raw": best["hub_cpu_per_mb_vs_raw"] if best else None,
             "hub_cpu_per_edge_vs_first": best.get("hub_cpu_per_edge_vs_first") if best else None,
+            "hub_one_core_n_estimate": best["hub_one_core_n_estimate"] if best else None,
             "stopped_by": "max N" if best is steps[-1] else "a step that did not hold",
             "steps": steps,
             "targets": {"edges": TARGET_EDGES},
