@@ -39,6 +39,7 @@ bench: $(STAMP)
 	$(PY) bench/control.py
 	$(PY) bench/foxglove.py
 	$(PY) bench/dashboard.py
+	$(PY) bench/fanin.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
