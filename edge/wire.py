@@ -371,11 +371,24 @@ class BatchDecoder:
         """Like `decode_batch` (raises WireError for anything that is not a batch of
         `sample_format`)."""
         r = Reader(payload)
+        h = self._header(r, sample_format)
+        return _batch(h, *_array_views(r, h))
+
+    def read_header(
+        self, payload: bytes | bytearray | memoryview, sample_format: SampleFormat = "float64"
+    ) -> BatchHeader:
+        """Like `read_header` (every field and length checked), with the strings cached."""
+        r = Reader(payload)
+        h = self._header(r, sample_format)
+        _array_views(r, h)
+        return h
+
+    def _header(self, r: Reader, sample_format: SampleFormat) -> BatchHeader:
+        payload = r.buf
         n = len(self._prefix)
         if n and len(payload) > n and payload[:n] == self._prefix:
             r.pos = n
         else:
             self._strings = (r.string(), r.string(), r.strings(), r.strings())
             self._prefix = bytes(payload[: r.pos])
-        h = _read_rest(r, _check_format(sample_format), *self._strings)
-        return _batch(h, *_array_views(r, h))
+        return _read_rest(r, _check_format(sample_format), *self._strings)

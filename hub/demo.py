@@ -214,7 +214,7 @@ def run_demo(
     users_file = data_dir / "dashboard-users"
     site = with_dashboard(site, users_file, dashboard, foxglove)
     password = demo_login(users_file) if site.hub.dashboard.enabled else ""
-    h = HubRuntime(site, data_dir, [listen] if listen else None)
+    h = HubRuntime(site, data_dir, [listen] if listen else None, live_plots=True)
     try:
         h.start()
     except RouterError as err:
@@ -242,6 +242,7 @@ def run_demo(
     assert session is not None
     # The demo's edges spool under the data folder, so a rerun replays what the last one left.
     procs = _spawn_edges(site, config, endpoint, session.dir / "logs", data_dir / "spool")
+    assert h.live_plots is not None  # asked for above
     layers = LayerWaits(site, h.live_plots)
     t0 = time.monotonic()
     died: list[str] = []

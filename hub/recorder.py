@@ -37,7 +37,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import EVENT_TYPE, Event
 from edge.systemd import Beat
-from edge.wire import decode_u64, encode_u64, plausible_time, read_header
+from edge.wire import BatchDecoder, decode_u64, encode_u64, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.read_model import ReadModel, RecorderView
@@ -116,6 +116,7 @@ class Recorder:
         self.lock = threading.Lock()
         """Held by the writer thread while it handles an item; `summary()` takes it."""
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._decoders: dict[tuple[str, str], BatchDecoder] = {}
         self.session: RecordingSession | None = None
         self._thread = threading.Thread(target=self._writer, name="recorder", daemon=True)
         self._subs: list[Any] = []
@@ -450,11 +451,19 @@ class Recorder:
                 count=st.malformed,
             )
 
+    def _decoder(self, st: StreamStats) -> BatchDecoder:
+        """The stream's decoder (writer thread only): its strings are parsed once, not per
+        batch (a tenth of the hub's CPU with a hundred small edges)."""
+        d = self._decoders.get((st.node, st.stream))
+        if d is None:
+            d = self._decoders[(st.node, st.stream)] = BatchDecoder()
+        return d
+
     def _record(self, st: StreamStats, payload: bytes, recv_ns: int, floor: int | None) -> None:
         assert self.session is not None
         node, stream = st.node, st.stream
         try:
-            h = read_header(payload, st.sample_format)
+            h = self._decoder(st).read_header(payload, st.sample_format)
             if (h.node, h.stream) != (node, stream):
                 raise WireError(f"payload says {h.node}/{h.stream}, key says {node}/{stream}")
             if floor is not None and floor > h.sequence:

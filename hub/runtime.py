@@ -82,8 +82,14 @@ class HubRuntime:
     """A context manager: the hub's services running between enter and exit."""
 
     def __init__(
-        self, site: SiteConfig, data_dir: Path | None = None, listen: list[str] | None = None
+        self,
+        site: SiteConfig,
+        data_dir: Path | None = None,
+        listen: list[str] | None = None,
+        live_plots: bool = False,
     ) -> None:
+        """`live_plots`: keep the plots' buffers even without the dashboard (the demo's
+        layer-wait table reads them); with the dashboard on they are always kept."""
         self.site = site
         self.listen = listen or list(site.hub.listen)
         configured = site.hub.data_dir
@@ -144,7 +150,11 @@ class HubRuntime:
         )
         if self.snapshots is not None:
             self.recorder.tap = self.snapshots.offer
-        self.live_plots = LivePlots(site, self.feed)
+        # Filling the plots costs every batch of every stream (a quarter of the hub's CPU with
+        # a hundred small edges): only when something shows them.
+        self.live_plots = (
+            LivePlots(site, self.feed) if live_plots or site.hub.dashboard.enabled else None
+        )
         self.recorder_requests = RecorderRequests(
             self.router,
             self.keys,
@@ -167,7 +177,7 @@ class HubRuntime:
                     bus=self.bus,
                 ),
             )
-            if site.hub.dashboard.enabled
+            if site.hub.dashboard.enabled and self.live_plots is not None
             else None
         )
         self.foxglove = FoxgloveLive.if_enabled(site, self.feed, self.bus, self.snapshot)
@@ -186,7 +196,7 @@ class HubRuntime:
                 self.fleet,
                 self.hub_health,
                 *([self.snapshots] if self.snapshots is not None else []),
-                self.live_plots,
+                *([self.live_plots] if self.live_plots is not None else []),
                 self.supervisor,
                 self.alarm_requests,
                 self.commands,
