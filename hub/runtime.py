@@ -40,7 +40,6 @@ from hub.foxglove.service import FoxgloveLive
 from hub.heartbeat import Heartbeat
 from hub.hub_health import HubHealth
 from hub.live_plots import LivePlots
-from hub.memory import keep_payload_pages
 from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
 from hub.partition import PartitionWatch
@@ -240,7 +239,6 @@ class HubRuntime:
 
     def start(self) -> None:
         """Start every service; on failure (or Ctrl-C) part-way, stop what had started."""
-        keep_payload_pages()  # before the first payload is received (`hub.memory`)
         self.services.start()
         self.started = True
         self.systemd.beats.append(self.recorder.beat)
