@@ -330,3 +330,5 @@ class EdgeAgent:
                 if self._session is not None:
                     self._session.close()
                     self._session = None
+            for loop in self.loops:
+                loop.join_replayer(5.0)

@@ -304,7 +304,12 @@ class StreamLoop:
                         break
                 if self._stop.is_set() or not self._hub_listens():
                     break
-                self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
+                try:
+                    self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
+                except zenoh.ZError:
+                    if self._stop.is_set():
+                        return  # the session closed under a put at shutdown: the spool keeps it
+                    raise
                 sent += len(payload)
                 batches += 1
                 self.counters.replayed += 1
@@ -324,11 +329,24 @@ class StreamLoop:
         for thread in (self._thread, self._replayer):
             if thread.is_alive():
                 thread.join(timeout)
+        if self._replayer.is_alive():
+            # A replay put blocked on a congested link: the agent joins it again once its
+            # session is closed (`join_replayer`), so no thread is inside Zenoh at exit.
+            log.warning(
+                "%s: replay still sending after %g s; waiting for the session", self.name, timeout
+            )
         for pub in (self._pub, self._replay_pub):
             if pub is not None:
                 pub.undeclare()
         self._pub = self._replay_pub = None
         self.spool.close()
+
+    def join_replayer(self, timeout: float) -> None:
+        """After the session is closed: the replay thread's blocked put has returned."""
+        if self._replayer.is_alive():
+            self._replayer.join(timeout)
+            if self._replayer.is_alive():
+                log.error("%s: the replay thread did not end", self.name)
 
 
 def with_close(driver: Driver) -> None:
