@@ -158,7 +158,7 @@ def part2(args: argparse.Namespace, tmp: Path, log: Progress) -> dict[str, Any]:
     rec_args = argparse.Namespace(
         seconds=args.seconds, publishers=args.publishers, compression="zstd",
         chunk_size=1024 * 1024, rate=0.0, max_batches=5000, window_mb=64.0,
-        max_backlog_mb=2000.0, pool=16, drain_s=60.0,
+        max_backlog_mb=2000.0, pool=16, drain_s=60.0, pki=None,
     )  # fmt: skip
     probe = parse_config(site_yaml(1, 7447, str(tmp)), "<bench>")
     limits = limits_from(PayloadPool(t8_stream(probe, node_name(0)), node_name(0), 600, 7), False)
