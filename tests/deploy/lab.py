@@ -165,7 +165,8 @@ class Lab:
             if host.popen.poll() is not None:
                 raise RuntimeError(f"sshd of {host.name} exited:\n{host.log_path.read_text()}")
             if time.monotonic() > deadline:
-                raise TimeoutError(f"sshd of {host.name} not listening:\n{host.log_path.read_text()}")
+                log = host.log_path.read_text()
+                raise TimeoutError(f"sshd of {host.name} not listening:\n{log}")
             time.sleep(0.02)
 
     def run_in_control(
