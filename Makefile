@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck imports bench clean
+.PHONY: demo test lint typecheck imports bench clean wheelhouse
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +27,23 @@ imports: $(STAMP)
 
 test: lint typecheck imports
 	$(PY) -m pytest -q
+
+# What ansible/site.yml installs on every host (README "Deploying a site"): fleetdaq's wheel and
+# the wheels of every dependency of the extras asked for, for the hosts' platform, e.g.
+#   make wheelhouse                                       this machine's platform, [hub]
+#   make wheelhouse EXTRAS=pi PLATFORM=manylinux_2_17_aarch64 PYVER=3.11   Raspberry Pi edges
+# Run it once per platform into the same folder; the hosts install with pip --no-index.
+WHEELHOUSE ?= build/wheelhouse
+EXTRAS ?= hub
+PLATFORM ?=
+PYVER ?=
+wheelhouse: $(STAMP)
+	mkdir -p $(WHEELHOUSE)
+	rm -f $(WHEELHOUSE)/fleetdaq-*.whl
+	$(PY) -m pip wheel --quiet --no-deps --wheel-dir $(WHEELHOUSE) .
+	$(PY) -m pip download --quiet --only-binary=:all: --dest $(WHEELHOUSE) \
+	  $(if $(PLATFORM),--platform $(PLATFORM)) $(if $(PYVER),--python-version $(PYVER)) \
+	  "$$(ls $(WHEELHOUSE)/fleetdaq-*.whl)[$(EXTRAS)]"
 
 bench: $(STAMP)
 	$(PY) bench/record.py
