@@ -138,13 +138,29 @@ def test_invalid_samples_are_a_sensor_fault_of_their_own_not_a_limit():
 
 def test_a_batch_on_one_side_of_every_limit_needs_no_look_at_its_samples():
     data = np.column_stack([np.linspace(0, 5, 100), np.linspace(20, 30, 100)])
-    lo, hi, nan = batch_extremes(np.ascontiguousarray(data.T))
+    lo, hi, nan = batch_extremes(np.ascontiguousarray(data))
     c = _cond(limit=10.0)
     assert not c.could_change(float(lo[0]), float(hi[0]), bool(nan[0]))
     assert c.could_change(float(lo[1]), float(hi[1]), bool(nan[1]))
     data[3, 0] = np.nan
-    lo, hi, nan = batch_extremes(np.ascontiguousarray(data.T))
+    lo, hi, nan = batch_extremes(np.ascontiguousarray(data))
     assert (bool(nan[0]), float(hi[0]), bool(nan[1])) == (True, 5.0, False)
+
+
+@pytest.mark.parametrize("scans", [1, 7, 100, 4000, 4001])
+def test_batch_extremes_fold_the_batch_and_agree_with_numpy(scans: int):
+    rng = np.random.default_rng(scans)
+    data = rng.normal(size=(scans, 8))
+    data[rng.integers(scans), 3] = np.nan
+    data[:, 5] = np.nan  # a channel with nothing valid
+    lo, hi, nan = batch_extremes(data)
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
+        want_lo, want_hi = np.nanmin(data, axis=0), np.nanmax(data, axis=0)
+    ok = ~np.isnan(want_lo)
+    assert np.array_equal(lo[ok], want_lo[ok])
+    assert np.array_equal(hi[ok], want_hi[ok])
+    assert (lo[5], hi[5]) == (np.inf, -np.inf)
+    assert nan.tolist() == np.isnan(data).any(axis=0).tolist()
 
 
 def test_a_chattering_condition_reports_a_bounded_number_of_flips_and_its_final_state():

