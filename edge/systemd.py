@@ -108,9 +108,9 @@ class Systemd:
 
     def stopping(self, status: str = "stopping") -> None:
         self._stop.set()
-        self.send("STOPPING=1", f"STATUS={status}")
-        if self._thread is not None:
+        if self._thread is not None:  # no ping or status of its may follow STOPPING
             self._thread.join(5.0)
+        self.send("STOPPING=1", f"STATUS={status}")
 
     def check(self, now: float | None = None) -> str | None:
         """The first stalled loop and for how long, or None when every loop is alive."""
