@@ -110,6 +110,8 @@ def test_a_loop_that_stops_moving_withholds_the_ping(systemd: FakeSystemd):
         t2.join()
     finally:
         sd.stopping()
+    # STOPPING is the last thing said (the receiver gets it on its own thread: wait for it)
+    wait_until(lambda: "STOPPING=1" in systemd.got(), 10, "STOPPING")
     assert systemd.got()[-2:] == ["STOPPING=1", "STATUS=stopping"]
 
 
