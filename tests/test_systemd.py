@@ -139,7 +139,7 @@ def test_a_stalled_recorder_writer_stops_the_hubs_pings(
         wait_until(lambda: "WATCHDOG=1" in systemd.got()[at_stall:], 10, "pings again")
     finally:
         hub.close()
-    assert "STOPPING=1" in systemd.got()
+    wait_until(lambda: "STOPPING=1" in systemd.got(), 10, "STOPPING from the hub")
 
 
 def test_the_edge_process_says_ready_with_its_status(systemd: FakeSystemd, tmp_path: Path):
@@ -167,4 +167,4 @@ def test_the_edge_process_says_ready_with_its_status(systemd: FakeSystemd, tmp_p
     finally:
         p.terminate()
         assert p.wait(30) == 0
-    assert "STOPPING=1" in systemd.got()
+    wait_until(lambda: "STOPPING=1" in systemd.got(), 10, "STOPPING from the edge")
