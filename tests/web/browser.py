@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Browser, Page, expect, sync_playwright
 
 CHROMIUM = "/usr/bin/chromium"
 UNACKED = re.compile(r"^(active|returned) unacked$")
@@ -178,7 +178,10 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         with page.expect_response("**/api/login") as resp:
             login(page, args["user"], "not-the-password")
         result["wrong_password_status"] = resp.value.status
-        result["wrong_password_text"] = page.get_by_role("alert").inner_text()
+        # The page writes the message after it has read the response: wait for some text.
+        alert = page.get_by_role("alert")
+        expect(alert).not_to_have_text("", timeout=10_000)
+        result["wrong_password_text"] = alert.inner_text()
 
         # The login the demo printed works; then the user the test added while the hub ran.
         login(page, args["demo_user"], args["demo_password"])
