@@ -281,45 +281,57 @@ class StreamLoop:
             self.events.emit(logging.ERROR, self.name, "spool_error", f"spool fsync failed: {err}")
 
     def _replay(self) -> None:
-        """Resend unacked batches from the spool, oldest first, rate-limited."""
+        """Resend unacked batches from the spool, oldest first, rate-limited. A pass that
+        fails (a spool read, a put) is reported and tried again: the thread never ends before
+        the stream stops."""
+        while not self._stop.wait(0.25):
+            try:
+                self._replay_pass()
+            except Exception as err:
+                if self._stop.is_set():
+                    return  # the session closed under a put at shutdown: the spool keeps it
+                log.exception("%s: replay", self.name)
+                self.events.emit(
+                    logging.ERROR,
+                    self.name,
+                    "replay_error",
+                    f"replaying from the spool failed, trying again in 5 s: {err!r}",
+                )
+                self._stop.wait(5.0)
+
+    def _replay_pass(self) -> None:
         after_ns = int(self.spool_cfg.replay_after_s * 1e9)
         rate = self.spool_cfg.replay_mb_per_s * 1e6
         window_s = 2.0  # > the hub's flush (ack) interval, or replay would stall on acks
-        while not self._stop.wait(0.25):
-            oldest = self.spool.oldest_unacked_time_ns()
-            if oldest is None or time.time_ns() - oldest < after_ns:
-                continue
-            if not self._hub_listens():
-                continue  # the hub is away: nothing to send to
-            first, until = self.spool.acked + 1, self.counters.next_sequence - 1
-            sent, batches, t_start = 0, 0, time.monotonic()
-            window = window_s * rate  # bytes in flight beyond the last ack
-            for seq, t_ns, payload in self.spool.read_from(first, until):
-                if time.time_ns() - t_ns < after_ns:
-                    break  # recent batches went out live and their ack is still due
-                # Keep the network queue short: wait for acks rather than piling up data
-                # ahead of the live batches.
-                while (seq - self.spool.acked) * len(payload) > window:
-                    if self._stop.wait(0.05) or not self._hub_listens():
-                        break
-                if self._stop.is_set() or not self._hub_listens():
+        oldest = self.spool.oldest_unacked_time_ns()
+        if oldest is None or time.time_ns() - oldest < after_ns:
+            return
+        if not self._hub_listens():
+            return  # the hub is away: nothing to send to
+        first, until = self.spool.acked + 1, self.counters.next_sequence - 1
+        sent, batches, t_start = 0, 0, time.monotonic()
+        window = window_s * rate  # bytes in flight beyond the last ack
+        for seq, t_ns, payload in self.spool.read_from(first, until):
+            if time.time_ns() - t_ns < after_ns:
+                break  # recent batches went out live and their ack is still due
+            # Keep the network queue short: wait for acks rather than piling up data ahead of
+            # the live batches.
+            while (seq - self.spool.acked) * len(payload) > window:
+                if self._stop.wait(0.05) or not self._hub_listens():
                     break
-                try:
-                    self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
-                except zenoh.ZError:
-                    if self._stop.is_set():
-                        return  # the session closed under a put at shutdown: the spool keeps it
-                    raise
-                sent += len(payload)
-                batches += 1
-                self.counters.replayed += 1
-                ahead = sent / rate - (time.monotonic() - t_start)
-                if ahead > 0 and self._stop.wait(ahead):
-                    break
-            if batches:
-                log.info("%s: replayed %d batch(es) from sequence %d", self.name, batches, first)
-            # Give the hub time to flush and ack before looking again.
-            self._stop.wait(self.spool_cfg.replay_after_s)
+            if self._stop.is_set() or not self._hub_listens():
+                break
+            self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
+            sent += len(payload)
+            batches += 1
+            self.counters.replayed += 1
+            ahead = sent / rate - (time.monotonic() - t_start)
+            if ahead > 0 and self._stop.wait(ahead):
+                break
+        if batches:
+            log.info("%s: replayed %d batch(es) from sequence %d", self.name, batches, first)
+        # Give the hub time to flush and ack before looking again.
+        self._stop.wait(self.spool_cfg.replay_after_s)
 
     def stop(self) -> None:
         self._stop.set()
