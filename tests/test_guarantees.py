@@ -226,11 +226,15 @@ def test_a_spool_overflow_is_reported_exactly_and_the_hub_counts_it_lost(site: S
     assert reports, "the edge raised spool_full"
     ranges = [(int(a), int(b)) for m in reports for a, b in RANGE.findall(m)]
     dropped = sorted(seq for a, b in ranges for seq in range(a, b + 1))
-    assert dropped == list(range(acked + 1, acked + 1 + len(dropped))), "oldest first, contiguous"
+    recorded = {r.sequence for r in site.recorded("/wec/t8")}
+    assert len(set(dropped)) == len(dropped), "each batch reported once"
+    assert dropped[0] == acked + 1, "oldest first"
+    # One run, but for batches the returned hub acked between two drops (replayed, recorded).
+    holes = set(range(dropped[0], dropped[-1] + 1)) - set(dropped)
+    assert holes <= recorded, f"neither dropped nor recorded: {sorted(holes - recorded)}"
     # Everything missing from the recording (and not still spooled) is among what it reported.
     # (Not all it reported is missing: a batch that reached the hub but whose ack had not come
     # back yet, before the outage or replayed after it, may be dropped too.)
-    recorded = {r.sequence for r in site.recorded("/wec/t8")}
     left = set(site.left_in_spool("t8"))
     top = max(recorded | left)
     missing = sorted(set(range(top + 1)) - recorded - left)

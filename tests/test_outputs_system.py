@@ -143,8 +143,11 @@ def test_every_refusal_reason_comes_back_through_the_real_queryable(rig: Rig) ->
         reply = d.command(output, fields.pop("action", "set"), **fields)
         assert (reply["applied"], reply["refusal"]) == (False, reason), (output, reply)
         assert text in reply["message"], reply
-    # too_fast: a step within max_rate x the time since the last change, then one beyond it
-    assert d.command("valve", value=1.0)["applied"]
+    # too_fast: a step within max_rate x the time since the last change, then one beyond it.
+    # (0.05 V at 2 V/s needs 25 ms since the valve's safe value was written at start: a fast
+    # host reaches this line ~0.2 s after that, too soon for a 0.5 V step.)
+    step = d.command("valve", value=0.55)
+    assert step["applied"], step
     fast = d.command("valve", value=5.0)
     assert fast["refusal"] == "too_fast", fast
     assert "exceeds max_rate 2 V/s" in fast["message"]
