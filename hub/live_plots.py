@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 import threading
 import warnings
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,11 @@ class _Ring:
     latest: npt.NDArray[np.float64]
     latest_ns: int = 0
     last_receive_ns: int = 0
+    writes: int = 0
+    """Batches written so far: a follower that saw this many has nothing new to do."""
+    touched: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=256))
+    """(write number, first bucket written) of the last writes: where a follower starts again
+    (a late batch rewrites old buckets)."""
 
 
 class LivePlots:
@@ -114,12 +120,42 @@ class LivePlots:
             ring.lo[idx] = np.where(same[:, None], np.fmin(old_lo, lo), lo)
             ring.hi[idx] = np.where(same[:, None], np.fmax(old_hi, hi), hi)
             ring.bucket[idx] = keys
+            ring.writes += 1
+            ring.touched.append((ring.writes, int(keys[0])))
             if not b.late:
                 ring.latest = data[-1].copy()
                 ring.latest_ns = int(t[-1])
                 ring.last_receive_ns = b.recv_ns
 
     # --- frames -----------------------------------------------------------------------------------
+
+    def follow(
+        self, stream: str, channels: list[str] | None, width: int, span_s: float
+    ) -> PlotFollower:
+        """A live plot of the last `span_s` of `channels` of ``node/stream`` in `width` columns,
+        kept up to date by `PlotFollower.update` (what the dashboard's WebSocket sends).
+
+        Raises KeyError for an unknown stream or channel, ValueError for a bad width or span.
+        """
+        ring, cols = self._checked(stream, channels, width, span_s)
+        return PlotFollower(self._lock, ring, stream, cols, width, span_s)
+
+    def _checked(
+        self, stream: str, channels: list[str] | None, width: int, span_s: float
+    ) -> tuple[_Ring, list[int]]:
+        if not 1 <= width <= 10_000:
+            raise ValueError("width must be 1 to 10000 pixels")
+        if not 0 < span_s <= self.window_s:
+            raise ValueError(f"span must be more than 0 and at most {self.window_s:g} s")
+        node, _, name = stream.partition("/")
+        ring = self._rings[(node, name)]
+        unknown = [c for c in channels or () if c not in ring.channels]
+        if unknown:
+            raise KeyError(f"{stream} has no channel {', '.join(unknown)}")
+        cols = [ring.channels.index(c) for c in channels] if channels else list(
+            range(len(ring.channels))
+        )  # fmt: skip
+        return ring, cols
 
     def frame(
         self,
@@ -146,18 +182,7 @@ class LivePlots:
     ) -> Frame:
         """`frame` as numpy columns (NaN where no sample fell): what the dashboard's WebSocket
         sends as float32, without a Python object per value."""
-        if not 1 <= width <= 10_000:
-            raise ValueError("width must be 1 to 10000 pixels")
-        if not 0 < span_s <= self.window_s:
-            raise ValueError(f"span must be more than 0 and at most {self.window_s:g} s")
-        node, _, name = stream.partition("/")
-        ring = self._rings[(node, name)]
-        unknown = [c for c in channels or () if c not in ring.channels]
-        if unknown:
-            raise KeyError(f"{stream} has no channel {', '.join(unknown)}")
-        cols = [ring.channels.index(c) for c in channels] if channels else list(
-            range(len(ring.channels))
-        )  # fmt: skip
+        ring, cols = self._checked(stream, channels, width, span_s)
         with self._lock:
             end = end_ns if end_ns is not None else ring.latest_ns
             start = end - round(span_s * 1e9)
@@ -231,3 +256,111 @@ def _listed(x: npt.NDArray[np.float64]) -> list[float | None]:
     """JSON-ready: NaN (no sample in that column) as None, floats rounded to 7 digits."""
     out: list[float | None] = np.round(x, 7).tolist()
     return [None if v is None or math.isnan(v) else v for v in out]
+
+
+@dataclass(frozen=True, slots=True)
+class Columns:
+    """A followed plot's frame: `width` pixel columns on the follower's time grid."""
+
+    stream: str
+    start_ns: int
+    end_ns: int
+    width: int
+    latest_ns: int
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    minmax: npt.NDArray[np.float32]
+    """(channels, 2, width): per channel the minima, then the maxima; NaN where no sample fell."""
+
+
+class PlotFollower:
+    """One live plot kept up to date a batch at a time.
+
+    Its pixel columns lie on a fixed time grid (column c covers ``[c * cw, (c + 1) * cw)`` ns,
+    ``cw`` = span / width), so new data recomputes only the columns it touched: a 100 ms batch
+    on a 10 s plot is 1/100 of the plot, where decimating the whole span for every frame did
+    the same work a hundred times over. A late batch (a replay) recomputes from its first
+    bucket on; a jump of more than the span, or time going back, recomputes everything.
+    """
+
+    def __init__(
+        self,
+        lock: threading.Lock,
+        ring: _Ring,
+        stream: str,
+        cols: list[int],
+        width: int,
+        span_s: float,
+    ) -> None:
+        self._lock = lock
+        self._ring = ring
+        self._cols = cols
+        self.stream = stream
+        self.width = width
+        self.column_ns = max(1, round(span_s * 1e9) // width)
+        self.channels = tuple(ring.channels[c] for c in cols)
+        self.units = tuple(ring.units[c] for c in cols)
+        self._minmax = np.full((len(cols), 2, width), np.nan, dtype=np.float32)
+        self._newest_col: int | None = None
+        self._writes = 0
+        self.latest_ns = 0
+        self.version = 0
+        """Changes whenever `update` changed the columns."""
+
+    def update(self) -> bool:
+        """Bring the columns up to the stream's newest data; False when nothing was new."""
+        ring, width, cw = self._ring, self.width, self.column_ns
+        with self._lock:
+            if ring.writes == self._writes or not ring.latest_ns:
+                return False
+            latest = ring.latest_ns
+            last_bucket = latest // ring.bucket_ns
+            newest = (last_bucket * ring.bucket_ns) // cw
+            oldest = newest - width + 1
+            start = oldest
+            seen = self._newest_col
+            if (
+                seen is not None
+                and seen <= newest
+                and ring.writes - self._writes <= len(ring.touched)
+            ):
+                first = last_bucket
+                for w, k in reversed(ring.touched):
+                    if w <= self._writes:
+                        break
+                    first = min(first, k)
+                start = max(oldest, min(seen, (first * ring.bucket_ns) // cw))
+            first_bucket = -(-(start * cw) // ring.bucket_ns)
+            wanted = np.arange(first_bucket, last_bucket + 1, dtype=np.int64)
+            idx = wanted % ring.size
+            held = (ring.bucket[idx] == wanted)[:, None]
+            lo = np.where(held, ring.lo[idx][:, self._cols], np.nan)
+            hi = np.where(held, ring.hi[idx][:, self._cols], np.nan)
+            self._writes = ring.writes
+        self._newest_col = newest
+        self.latest_ns = latest
+        self.version += 1
+        self._minmax[:, :, np.arange(start, newest + 1) % width] = np.nan
+        if wanted.size:
+            column = (wanted * ring.bucket_ns) // cw
+            edges = np.flatnonzero(np.diff(column, prepend=column[0] - 1))
+            with np.errstate(invalid="ignore"):
+                at = column[edges] % width
+                self._minmax[:, 0, at] = np.fmin.reduceat(lo, edges, axis=0).T
+                self._minmax[:, 1, at] = np.fmax.reduceat(hi, edges, axis=0).T
+        return True
+
+    def columns(self) -> Columns:
+        """The plot as of the last `update`, oldest column first."""
+        newest = self._newest_col if self._newest_col is not None else 0
+        cw = self.column_ns
+        return Columns(
+            stream=self.stream,
+            start_ns=(newest - self.width + 1) * cw,
+            end_ns=(newest + 1) * cw,
+            width=self.width,
+            latest_ns=self.latest_ns,
+            channels=self.channels,
+            units=self.units,
+            minmax=np.roll(self._minmax, -((newest + 1) % self.width), axis=2),
+        )

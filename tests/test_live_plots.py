@@ -102,3 +102,81 @@ def test_bad_requests_raise_clear_errors(plots: LivePlots):
         plots.frame("wec/t8", None, 100, 3600.0)
     with pytest.raises(KeyError, match="no-such-channel"):
         plots.frame("wec/t8", ["no-such-channel"], 100, 1.0)
+
+
+def _grid_truth(
+    all_t: np.ndarray, all_data: np.ndarray, ch: int, start_ns: int, column_ns: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per column of a follower's grid, independently: min and max of the samples whose 2 ms
+    bucket starts in it (NaN where none)."""
+    column = ((all_t // 2_000_000) * 2_000_000) // column_ns - start_ns // column_ns
+    lo = np.full(width, np.nan)
+    hi = np.full(width, np.nan)
+    for c in range(width):
+        sel = all_data[column == c, ch]
+        if sel.size:
+            lo[c], hi[c] = sel.min(), sel.max()
+    return lo, hi
+
+
+def test_a_followed_plot_updated_batch_by_batch_equals_one_computed_at_once(plots: LivePlots):
+    rng = np.random.default_rng(11)
+    enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
+    t0 = 1_800_000_000_000_123_457  # not on a bucket or column boundary
+    per, n_batches, width, span = 4000, 40, 300, 2.0  # 4 s of 100 ms batches over a 2 s plot
+    all_data = rng.normal(size=(n_batches * per, 2))
+    all_data[150_001, 0] = -42.0  # a one-sample dip must survive
+    live = plots.follow("wec/t8", None, width, span)
+    versions = []
+    for i in range(n_batches):
+        first = t0 + round(i * per * PERIOD)
+        plots._on_batch(fed(enc, i, first, all_data[i * per : (i + 1) * per]))
+        assert live.update(), "new data changes the plot"
+        assert not live.update(), "nothing new: nothing to do"
+        versions.append(live.version)
+    assert versions == sorted(set(versions))
+    once = plots.follow("wec/t8", None, width, span)
+    once.update()
+    got, whole = live.columns(), once.columns()
+    assert (got.start_ns, got.end_ns) == (whole.start_ns, whole.end_ns)
+    np.testing.assert_array_equal(got.minmax, whole.minmax)
+    assert got.end_ns - got.start_ns == width * live.column_ns
+    assert got.start_ns <= got.latest_ns < got.end_ns
+    assert got.channels == ("heave", "force")
+    assert got.units == ("m", "kN")
+
+    all_t = t0 + np.round(np.arange(n_batches * per) * PERIOD).astype(np.int64)
+    for ch in (0, 1):
+        lo, hi = _grid_truth(all_t, all_data, ch, got.start_ns, live.column_ns, width)
+        np.testing.assert_allclose(got.minmax[ch, 0], lo.astype(np.float32), rtol=1e-6)
+        np.testing.assert_allclose(got.minmax[ch, 1], hi.astype(np.float32), rtol=1e-6)
+    assert np.nanmin(got.minmax[0, 0]) == -42.0
+    assert not np.isnan(got.minmax).any(), "a continuous stream leaves no empty column"
+
+
+def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: LivePlots):
+    enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
+    t0 = 1_800_000_000_000_000_000
+    per = 4000
+    live = plots.follow("wec/t8", ["force"], 100, 1.0)
+    assert not live.update(), "no data yet"
+    plots._on_batch(fed(enc, 0, t0, np.full((per, 2), 1.0)))
+    plots._on_batch(fed(enc, 2, t0 + round(2 * per * PERIOD), np.full((per, 2), 3.0)))
+    live.update()
+    before = live.columns().minmax[0]
+    holes = np.isnan(before[0]).sum()
+    assert holes >= 9, "the missing 100 ms is a hole of about 10 columns"
+    plots._on_batch(fed(enc, 1, t0 + round(per * PERIOD), np.full((per, 2), -5.0), late=True))
+    assert live.update(), "a late batch changes the plot"
+    after = live.columns().minmax[0]
+    assert np.nanmin(after[0]) == -5.0
+    assert np.isnan(after[0]).sum() < holes
+    assert live.columns().latest_ns == plots.streams()["wec/t8"]["latest_ns"]
+
+    # An hour later: nothing of the old data is left in a 1 s plot.
+    later = t0 + 3600 * 10**9
+    plots._on_batch(fed(enc, 3, later, np.full((per, 2), 7.0)))
+    live.update()
+    cols = live.columns()
+    assert cols.start_ns > t0 + 3599 * 10**9
+    assert set(np.unique(cols.minmax[~np.isnan(cols.minmax)])) == {7.0}

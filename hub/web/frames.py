@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from hub.live_plots import Frame
+from hub.live_plots import Columns, Frame
 
 
 def pack(frame: Frame) -> tuple[dict[str, Any], bytes]:
@@ -32,6 +32,19 @@ def pack(frame: Frame) -> tuple[dict[str, Any], bytes]:
         ],
     }
     return header, columns.astype("<f4").tobytes()
+
+
+def pack_columns(c: Columns) -> tuple[dict[str, Any], bytes]:
+    """A followed plot's frame, as `pack` (its columns are float32 already)."""
+    header = {
+        "stream": c.stream,
+        "start_ns": c.start_ns,
+        "end_ns": c.end_ns,
+        "width": c.width,
+        "latest_ns": c.latest_ns,
+        "channels": [{"name": n, "unit": u} for n, u in zip(c.channels, c.units, strict=True)],
+    }
+    return header, c.minmax.astype("<f4", copy=False).tobytes()
 
 
 def message(plot_id: str, header: dict[str, Any], data: bytes) -> bytes:

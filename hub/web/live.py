@@ -37,6 +37,7 @@ from typing import Any
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from edge.config.dashboard import DashboardConfig
+from hub.live_plots import PlotFollower
 from hub.read_model import to_jsonable
 from hub.web import frames
 from hub.web.api import Api, fail
@@ -56,6 +57,10 @@ MAX_BAD_MESSAGES = 50
 PENDING_EVENTS = 500
 
 
+PlotKey = tuple[str, tuple[str, ...], int, float]
+"""stream, channels, width, span: the plots that are the same for every client."""
+
+
 @dataclass(frozen=True, slots=True)
 class PlotRequest:
     id: str
@@ -65,7 +70,7 @@ class PlotRequest:
     span_s: float
 
     @property
-    def key(self) -> tuple[str, tuple[str, ...], int, float]:
+    def key(self) -> PlotKey:
         return (self.stream, self.channels, self.width, self.span_s)
 
 
@@ -80,7 +85,7 @@ class Client:
     """Its sender closes the socket (4001: log in again) instead of sending more."""
     plots: dict[str, PlotRequest] = field(default_factory=dict)
     sent_latest: dict[str, int] = field(default_factory=dict)
-    """Per plot id, the newest sample time of the last frame queued: no frame twice."""
+    """Per plot id, the follower's version of the last frame queued: no frame twice."""
     state: str | None = None
     frames: dict[str, str | bytes] = field(default_factory=dict)
     events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=PENDING_EVENTS))
@@ -183,6 +188,7 @@ class Live:
         self._tasks: list[asyncio.Task[None]] = []
         self._senders: set[asyncio.Task[None]] = set()
         self._event_seq = 0
+        self._followed: dict[PlotKey, _Followed] = {}
         self.closing = False
 
     def add_routes(self, app: web.Application) -> None:
@@ -358,21 +364,31 @@ class Live:
 
     def _frame_tick(self) -> None:
         wanted = [(c, p) for c in self.clients if not c.ending for p in c.plots.values()]
-        if not wanted:
-            return
-        latest = {name: info["latest_ns"] for name, info in self.parts.live_plots.streams().items()}
-        built: dict[tuple[str, tuple[str, ...], int, float], tuple[dict[str, Any], bytes]] = {}
+        followed = self._followed
+        keys = {p.key for _, p in wanted}
+        for key in [k for k in followed if k not in keys]:
+            del followed[key]  # nobody plots it any more
+        updated: set[PlotKey] = set()
         for c, p in wanted:
-            newest = latest.get(p.stream, 0)
-            if not newest or c.sent_latest.get(p.id) == newest:
-                continue
-            packed = built.get(p.key)
-            if packed is None:
-                frame = self.parts.live_plots.frame_arrays(
-                    p.stream, list(p.channels), p.width, p.span_s
+            f = followed.get(p.key)
+            if f is None:
+                f = followed[p.key] = _Followed(
+                    self.parts.live_plots.follow(p.stream, list(p.channels), p.width, p.span_s)
                 )
-                packed = frames.pack(frame)
-                built[p.key] = packed
-                self.stats.frames_computed += 1
-            c.sent_latest[p.id] = newest
-            c.offer_frame(p.id, frames.message(p.id, *packed))
+            if p.key not in updated:
+                updated.add(p.key)
+                if f.follower.update():  # only the columns new data touched are recomputed
+                    f.packed = frames.pack_columns(f.follower.columns())
+                    self.stats.frames_computed += 1
+            if f.packed is None or c.sent_latest.get(p.id) == f.follower.version:
+                continue
+            c.sent_latest[p.id] = f.follower.version
+            c.offer_frame(p.id, frames.message(p.id, *f.packed))
+
+
+@dataclass(slots=True)
+class _Followed:
+    """A plot some client shows, followed once for every client that shows it."""
+
+    follower: PlotFollower
+    packed: tuple[dict[str, Any], bytes] | None = None

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from hub.bus import EventBus
-from hub.live_plots import Frame
+from hub.live_plots import Frame, PlotFollower
 from hub.read_model import HubView
 
 
@@ -47,6 +47,10 @@ class Plots(Protocol):
         span_s: float,
         end_ns: int | None = None,
     ) -> Frame: ...
+
+    def follow(
+        self, stream: str, channels: list[str] | None, width: int, span_s: float
+    ) -> PlotFollower: ...
 
     def streams(self) -> dict[str, dict[str, Any]]: ...
 
