@@ -332,22 +332,34 @@ class PlotFollower:
                 start = max(oldest, min(seen, (first * ring.bucket_ns) // cw))
             first_bucket = -(-(start * cw) // ring.bucket_ns)
             wanted = np.arange(first_bucket, last_bucket + 1, dtype=np.int64)
-            idx = wanted % ring.size
-            held = (ring.bucket[idx] == wanted)[:, None]
-            lo = np.where(held, ring.lo[idx][:, self._cols], np.nan)
-            hi = np.where(held, ring.hi[idx][:, self._cols], np.nan)
+            i0 = first_bucket % ring.size
+            if i0 + wanted.size <= ring.size:  # one stretch of the ring: views, nothing copied
+                at: slice | npt.NDArray[np.int64] = slice(i0, i0 + wanted.size)
+            else:
+                at = wanted % ring.size
+            lo, hi = ring.lo[at], ring.hi[at]
+            held = ring.bucket[at] == wanted
+            if not held.all():  # buckets of data older than the ring's window: none there
+                lo = np.where(held[:, None], lo, np.nan)
+                hi = np.where(held[:, None], hi, np.nan)
+            if wanted.size:
+                column = (wanted * ring.bucket_ns) // cw
+                edges = np.flatnonzero(np.diff(column, prepend=column[0] - 1))
+                with np.errstate(invalid="ignore"):
+                    plo = np.fmin.reduceat(lo, edges, axis=0)[:, self._cols]
+                    phi = np.fmax.reduceat(hi, edges, axis=0)[:, self._cols]
             self._writes = ring.writes
         self._newest_col = newest
         self.latest_ns = latest
         self.version += 1
-        self._minmax[:, :, np.arange(start, newest + 1) % width] = np.nan
+        count = newest + 1 - start  # columns recomputed: emptied, then filled where data fell
+        a = start % width
+        self._minmax[:, :, a : a + count] = np.nan
+        self._minmax[:, :, : max(0, a + count - width)] = np.nan
         if wanted.size:
-            column = (wanted * ring.bucket_ns) // cw
-            edges = np.flatnonzero(np.diff(column, prepend=column[0] - 1))
-            with np.errstate(invalid="ignore"):
-                at = column[edges] % width
-                self._minmax[:, 0, at] = np.fmin.reduceat(lo, edges, axis=0).T
-                self._minmax[:, 1, at] = np.fmax.reduceat(hi, edges, axis=0).T
+            put = column[edges] % width
+            self._minmax[:, 0, put] = plo.T
+            self._minmax[:, 1, put] = phi.T
         return True
 
     def columns(self) -> Columns:

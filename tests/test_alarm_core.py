@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from edge.config.load import parse_config
-from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, batch_extremes
+from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, StreamScreen
 from hub.alarms.definitions import build_definitions
+from hub.alarms.extremes import batch_extremes, kernel_error, numpy_extremes, warm_up
 from hub.alarms.journal import Journal
 from hub.alarms.requests import BadRequest, parse_request
 from hub.alarms.states import AlarmStatus, Refused, State
@@ -147,13 +148,21 @@ def test_a_batch_on_one_side_of_every_limit_needs_no_look_at_its_samples():
     assert (bool(nan[0]), float(hi[0]), bool(nan[1])) == (True, 5.0, False)
 
 
+def test_the_hub_reads_each_batch_once_with_the_compiled_kernel():
+    assert warm_up() is not None, kernel_error()  # numba is in the hub extra
+
+
+@pytest.mark.parametrize("extremes", [batch_extremes, numpy_extremes], ids=["numba", "numpy"])
 @pytest.mark.parametrize("scans", [1, 7, 100, 4000, 4001])
-def test_batch_extremes_fold_the_batch_and_agree_with_numpy(scans: int):
+def test_batch_extremes_agree_with_numpy(scans: int, extremes):
     rng = np.random.default_rng(scans)
     data = rng.normal(size=(scans, 8))
     data[rng.integers(scans), 3] = np.nan
     data[:, 5] = np.nan  # a channel with nothing valid
-    lo, hi, nan = batch_extremes(data)
+    data[rng.integers(scans), 6] = np.inf
+    data[0, 7] = np.nan  # invalid first: the rest still counts
+    data[-1, 1] = -np.inf
+    lo, hi, nan = extremes(data)
     with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
         want_lo, want_hi = np.nanmin(data, axis=0), np.nanmax(data, axis=0)
     ok = ~np.isnan(want_lo)
@@ -161,6 +170,27 @@ def test_batch_extremes_fold_the_batch_and_agree_with_numpy(scans: int):
     assert np.array_equal(hi[ok], want_hi[ok])
     assert (lo[5], hi[5]) == (np.inf, -np.inf)
     assert nan.tolist() == np.isnan(data).any(axis=0).tolist()
+
+
+def test_a_stream_screen_passes_exactly_the_batches_a_condition_could_change_on():
+    """Against `could_change` for each condition, over random batches and condition states."""
+    rng = np.random.default_rng(3)
+    above, below, fault = _cond(limit=10.0), _cond(limit=-5.0, check="below"), _cond(check="fault")
+    screen = StreamScreen(3, {0: [above, below], 2: [fault]})
+    for _ in range(400):
+        for c in (above, below, fault):  # any state, delays running or not
+            c.raw, c.active = bool(rng.integers(2)), bool(rng.integers(2))
+        for col in (0, 2):
+            screen.refresh(col)
+        lo = rng.uniform(-12, 12, 3)
+        hi = lo + rng.uniform(0, 12, 3)
+        nan = rng.integers(2, size=3).astype(bool)
+        want = [
+            col
+            for col, conds in ((0, (above, below)), (2, (fault,)))
+            if any(c.could_change(float(lo[col]), float(hi[col]), bool(nan[col])) for c in conds)
+        ]
+        assert screen.busy(lo, hi, nan) == want
 
 
 def test_a_chattering_condition_reports_a_bounded_number_of_flips_and_its_final_state():
@@ -268,3 +298,23 @@ def test_the_alarm_names_the_site_file_knows_are_the_ones_the_hub_builds():
     assert alarm_names(site) == {d.name for d in build_definitions(site)}
     demo = parse_config(Path("config/demo.yaml").read_text(), "demo.yaml")
     assert alarm_names(demo) == {d.name for d in build_definitions(demo)}
+
+
+def test_batch_extremes_read_a_payloads_own_bytes():
+    """As the hub hands them over: a read-only view into the payload (not 8-byte aligned: the
+    CDR body starts 4 bytes in), of a smooth wave (a new extreme every few samples)."""
+    from edge.wire import BatchEncoder, batch_values, read_header
+    from ptp.quality import UNSYNCED
+
+    t = np.arange(4000) / 40_000
+    data = np.column_stack([np.sin(2 * np.pi * f * t) * (i + 1) for i, f in enumerate(range(1, 9))])
+    data[1234, 2] = np.nan
+    enc = BatchEncoder("wec", "t8", tuple(f"c{i}" for i in range(8)), ("V",) * 8)
+    payload = bytes(enc.encode(0, 0, 25_000.0, data, UNSYNCED))
+    values = batch_values(read_header(payload), payload)
+    assert not values.flags.writeable
+    got = batch_extremes(values)
+    want = numpy_extremes(np.array(values))
+    for a, b in zip(got, want, strict=True):
+        assert np.array_equal(a, b)
+    assert got[2].tolist() == [False, False, True, False, False, False, False, False]

@@ -28,8 +28,9 @@ from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.messages import ALARM_STATE_TYPE, AlarmState
 from edge.wire import batch_values
-from hub.alarms.conditions import Delayed, Flip, SampleCondition, batch_extremes
+from hub.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
 from hub.alarms.definitions import AlarmDef, build_definitions
+from hub.alarms.extremes import batch_extremes, warm_up
 from hub.alarms.journal import Journal
 from hub.alarms.states import IN_ALARM, AlarmStatus, Change, State
 from hub.batch_feed import BatchFeed, FedBatch
@@ -109,6 +110,14 @@ class Supervisor:
                 names = [c.name for c in site.nodes[a.d.node].streams[a.d.stream].channels]
                 col = names.index(a.d.channel)
                 self.by_stream.setdefault((a.d.node, a.d.stream), []).append((col, a))
+        self.screens: dict[tuple[str, str], tuple[StreamScreen, dict[int, list[Alarm]]]] = {}
+        for (node, stream), pairs in self.by_stream.items():
+            by_col: dict[int, list[Alarm]] = {}
+            for col, a in pairs:
+                by_col.setdefault(col, []).append(a)
+            conditions = {c: [a.samples for a in al if a.samples] for c, al in by_col.items()}
+            width = len(site.nodes[node].streams[stream].channels)
+            self.screens[(node, stream)] = (StreamScreen(width, conditions), by_col)
         self.journal = Journal(journal_path)
         self.lock = threading.Lock()
         self.totals = {"raised": 0, "cleared": 0, "acked": 0, "shelved": 0, "disabled": 0}
@@ -127,6 +136,8 @@ class Supervisor:
 
     def start(self) -> None:
         self.started_ns = time.time_ns()
+        if self.screens:  # value alarms: their one-pass kernel compiled before the first batch
+            warm_up(self.journal.path.parent / "cache")
         self._restore(self.journal.load())
         self.journal.open()
         self._publish()
@@ -172,6 +183,9 @@ class Supervisor:
             if a.samples is not None:
                 a.samples.active = a.samples.raw = a.status.active
             restored += 1
+        for screen, by_col in self.screens.values():
+            for col in by_col:
+                screen.refresh(col)
         if restored:
             states = [a.status.state for a in self.alarms.values()]
             in_alarm = sum(s in IN_ALARM for s in states)
@@ -193,30 +207,35 @@ class Supervisor:
         if b.late:
             self.late_skipped += 1  # history filled in by a replay: alarms are about now
             return
-        alarms = self.by_stream.get((b.node, b.stream))
-        if not alarms:
+        screened = self.screens.get((b.node, b.stream))
+        if screened is None:
             return
+        screen, by_col = screened
         h = b.header
         # The data array is the payload's tail (the recorder checked every length): a view.
         # A channel is copied out (contiguous) only when one of its limits may change.
         values = batch_values(h, b.payload)
         lo_a, hi_a, nan_a = batch_extremes(values)
-        lo, hi, nan = lo_a.tolist(), hi_a.tolist(), nan_a.tolist()  # no numpy scalars below
+        busy = screen.busy(lo_a, hi_a, nan_a)
+        if not busy:
+            return  # every sample inside every band: nothing can change
         period = h.sample_period_ns
-        columns: dict[int, npt.NDArray[np.float64]] = {}
-        for col, a in alarms:
-            cond = a.samples
-            assert cond is not None
-            if not cond.could_change(lo[col], hi[col], nan[col]):
-                continue
-            column = columns.get(col)
-            if column is None:
-                column = columns[col] = np.ascontiguousarray(values[:, col])
-            flips = cond.evaluate(column, h.first_sample_time_ns, period)
-            if flips:
-                with self.lock:
-                    for flip in flips:
-                        self._flip(a, flip)
+        for col in busy:
+            lo, hi, nan = float(lo_a[col]), float(hi_a[col]), bool(nan_a[col])
+            column: npt.NDArray[np.float64] | None = None
+            for a in by_col[col]:
+                cond = a.samples
+                assert cond is not None
+                if not cond.could_change(lo, hi, nan):
+                    continue
+                if column is None:
+                    column = np.ascontiguousarray(values[:, col])
+                flips = cond.evaluate(column, h.first_sample_time_ns, period)
+                if flips:
+                    with self.lock:
+                        for flip in flips:
+                            self._flip(a, flip)
+            screen.refresh(col)
 
     # --- stream, node and hub alarms: from the read model ---------------------------------------
 

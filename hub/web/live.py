@@ -1,10 +1,10 @@
-"""The dashboard's WebSocket (``/api/live``): the hub's state pushed twice a second, new events as
-they come, and the live plots each client asked for.
+"""The dashboard's WebSocket (``/api/live``): the hub's state pushed once a second (nodes report
+their health once a second), new events as they come, and the live plots each client asked for.
 
 Server -> client (JSON text messages):
 
 - ``{"type": "state", "view": <the read model, less its event tail>, "streams": <live values>,
-  "outputs": <commands.listing()>, "dashboard": <the dashboard's counters>}`` at 2 Hz;
+  "outputs": <commands.listing()>, "dashboard": <the dashboard's counters>}`` at 1 Hz;
 - ``{"type": "events", "events": [...]}``: the last events at connect, then what is new;
 - a binary message per plot frame (`hub.web.frames`: a JSON header with the client's plot id,
   then min/max per pixel column as float32), sent when its stream has new data (checked 20
@@ -38,8 +38,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from edge.config.dashboard import DashboardConfig
 from hub.live_plots import PlotFollower
-from hub.read_model import to_jsonable
-from hub.web import frames
+from hub.web import frames, jsontext
 from hub.web.api import Api, fail
 from hub.web.events import EventTail
 from hub.web.parts import HubParts
@@ -47,7 +46,7 @@ from hub.web.stats import WebStats
 
 log = logging.getLogger("fleetdaq.dashboard")
 
-STATE_PERIOD_S = 0.5
+STATE_PERIOD_S = 1.0
 FRAME_PERIOD_S = 0.05
 MAX_PLOTS = 8
 MAX_CHANNELS = 16
@@ -329,16 +328,15 @@ class Live:
     def _state_text(self) -> str:
         view = self.parts.snapshot()
         outputs = self.parts.commands.listing() if self.parts.commands.outputs() else []
-        return json.dumps(
+        return jsontext.dumps(
             {
                 "type": "state",
-                "view": to_jsonable(dataclasses.replace(view, recent_events=())),
+                "view": dataclasses.replace(view, recent_events=()),
                 "streams": self.parts.live_plots.streams(),
-                "outputs": to_jsonable(outputs),
+                "outputs": outputs,
                 "dashboard": self.stats.to_dict(),
                 "sent_ns": time.time_ns(),
-            },
-            separators=(",", ":"),
+            }
         )
 
     def _state_for(self, client: Client) -> None:

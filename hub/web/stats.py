@@ -29,7 +29,7 @@ class WebStats:
     frames_computed: int = 0
     tick_errors: int = 0
     state_cpu_s: float = 0.0
-    """CPU seconds spent building and queueing the 2 Hz state (the loop's thread)."""
+    """CPU seconds spent building and queueing the 1 Hz state (the loop's thread)."""
     frames_cpu_s: float = 0.0
     """CPU seconds spent on live plot frames."""
     metrics_cpu_s: float = 0.0
