@@ -3,9 +3,10 @@ column, so a 40 kS/s channel plots smoothly at 10+ frames a second with bounded 
 
 For every stream the service keeps the last `window_s` of every channel as min/max per time
 bucket (at least 2 ms, at least one sample period), in ring buffers filled from the batch feed
-in numpy (a batch becomes a `reduceat` per bucket boundary: no per-sample Python). A frame
-request merges the buckets that fall in each pixel column. Memory per stream: 2 x channels x
-window_s / bucket_s float64.
+in numpy (a batch becomes a `reduceat` per bucket boundary: no per-sample Python). A one-off
+frame (`frame`, the HTTP API) merges the buckets that fall in each pixel column; a live plot
+(`follow`, the WebSocket) keeps its columns on a fixed time grid and recomputes only those new
+data touched. Memory per stream: 2 x channels x window_s / bucket_s float64.
 """
 
 from __future__ import annotations
