@@ -149,7 +149,7 @@ def test_a_batch_on_one_side_of_every_limit_needs_no_look_at_its_samples():
 
 
 def test_the_hub_reads_each_batch_once_with_the_compiled_kernel():
-    assert warm_up() is not None, kernel_error()  # numba is in the hub extra
+    assert warm_up(wait=None) is not None, kernel_error()  # numba is in the hub extra
 
 
 @pytest.mark.parametrize("extremes", [batch_extremes, numpy_extremes], ids=["numba", "numpy"])
@@ -162,6 +162,7 @@ def test_batch_extremes_agree_with_numpy(scans: int, extremes):
     data[rng.integers(scans), 6] = np.inf
     data[0, 7] = np.nan  # invalid first: the rest still counts
     data[-1, 1] = -np.inf
+    warm_up(wait=None)
     lo, hi, nan = extremes(data)
     with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
         want_lo, want_hi = np.nanmin(data, axis=0), np.nanmax(data, axis=0)
@@ -313,6 +314,7 @@ def test_batch_extremes_read_a_payloads_own_bytes():
     payload = bytes(enc.encode(0, 0, 25_000.0, data, UNSYNCED))
     values = batch_values(read_header(payload), payload)
     assert not values.flags.writeable
+    assert warm_up(wait=None) is not None, kernel_error()
     got = batch_extremes(values)
     want = numpy_extremes(np.array(values))
     for a, b in zip(got, want, strict=True):

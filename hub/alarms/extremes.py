@@ -10,8 +10,8 @@ otherwise, with the same results (tests/test_alarm_core.py checks the two agains
 
 numba compiles the loop once and caches it: beside this file where that is writable, else in
 the hub's data folder (``cache/numba``), so a hub whose package is read-only (systemd's
-ProtectSystem) compiles it once, not at every start. `warm_up` compiles it (about a second,
-or loads it from the cache) before the first batch arrives.
+ProtectSystem) compiles it once, not at every start. `warm_up` starts that at the hub's start
+in a thread of its own; until it is ready (about a second; less from the cache) numpy does it.
 """
 
 from __future__ import annotations
@@ -33,13 +33,25 @@ Extremes = tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[n
 
 
 class _Compiled:
-    """The kernel, compiled once per process (or None: numpy), and why not."""
+    """The kernel, compiled once per process in a thread of its own (None until then, or for
+    good when numba is missing or fails: numpy), and why not."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.tried = False
+        self.thread: threading.Thread | None = None
         self.kernel: Callable[..., None] | None = None
         self.error = ""
+
+    def build(self, cache_dir: Path | None) -> None:
+        try:
+            self.kernel = _compile(cache_dir)
+        except ImportError:
+            self.error = "numba is not installed"
+        except Exception as err:  # a broken numba must not stop the alarms: numpy does
+            self.error = f"numba failed: {err!r}"
+        if self.error:
+            log.warning("value alarms screen batches with numpy (%s): about 1.5 x the CPU of "
+                        "the compiled one-pass loop", self.error)  # fmt: skip
 
 
 _compiled = _Compiled()
@@ -47,9 +59,12 @@ _compiled = _Compiled()
 
 def batch_extremes(values: npt.NDArray[np.float64]) -> Extremes:
     """Per channel of a C-contiguous (scans, channels) batch: the minimum and maximum of its
-    valid samples (+inf and -inf for a channel with none), and whether any sample is NaN."""
-    kernel = _compiled.kernel if _compiled.tried else warm_up()
+    valid samples (+inf and -inf for a channel with none), and whether any sample is NaN.
+    numpy until the compiled loop is ready (`warm_up`)."""
+    kernel = _compiled.kernel
     if kernel is None:
+        if _compiled.thread is None:
+            warm_up()
         return numpy_extremes(values)
     channels = values.shape[1]
     lo = np.empty(channels)
@@ -61,28 +76,34 @@ def batch_extremes(values: npt.NDArray[np.float64]) -> Extremes:
     return lo, hi, bad
 
 
-def warm_up(cache_dir: Path | None = None) -> Callable[..., None] | None:
-    """Compile (or load from the cache) the one-pass kernel; None when numba is missing or
-    fails, and numpy is used (`kernel_error` says why). Safe from several threads; only the
-    first call compiles."""
+def warm_up(cache_dir: Path | None = None, wait: float | None = 0.0) -> Callable[..., None] | None:
+    """Start compiling (or loading from the cache) the one-pass kernel in a thread of its own,
+    so a hub starts as fast without it (a compile takes about a second here, longer on a
+    small computer); batches use numpy meanwhile. Waits up to `wait` seconds for it (None:
+    as long as it takes). Returns the kernel, or None: not ready yet, or numba is missing or
+    failed (`kernel_error` says why). Only the first call starts a compile."""
     c = _compiled
     with c.lock:
-        if not c.tried:
-            try:
-                c.kernel = _compile(cache_dir)
-            except ImportError:
-                c.error = "numba is not installed"
-            except Exception as err:  # a broken numba must not stop the alarms: numpy does
-                c.error = f"numba failed: {err!r}"
-            c.tried = True
-            if c.error:
-                log.warning("value alarms screen batches with numpy (%s): about 1.7 x the CPU "
-                            "of the compiled one-pass loop", c.error)  # fmt: skip
-        return c.kernel
+        if c.thread is None:
+            c.thread = threading.Thread(
+                target=c.build, args=(cache_dir,), name="alarms-compile", daemon=True
+            )
+            c.thread.start()
+    if wait is None or wait > 0:
+        c.thread.join(wait)
+    return c.kernel
+
+
+def settle(timeout: float) -> None:
+    """Wait up to `timeout` for a compile started by `warm_up` (none started: no wait), so a
+    stopping hub does not exit with a thread inside LLVM."""
+    thread = _compiled.thread
+    if thread is not None:
+        thread.join(timeout)
 
 
 def kernel_error() -> str:
-    """Why the compiled kernel is not used (empty: it is, or it was not needed yet)."""
+    """Why the compiled kernel is not used (empty: it is, or it is not ready yet)."""
     return _compiled.error
 
 

@@ -30,7 +30,7 @@ from edge.messages import ALARM_STATE_TYPE, AlarmState
 from edge.wire import batch_values
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
 from hub.alarms.definitions import AlarmDef, build_definitions
-from hub.alarms.extremes import batch_extremes, warm_up
+from hub.alarms.extremes import batch_extremes, settle, warm_up
 from hub.alarms.journal import Journal
 from hub.alarms.states import IN_ALARM, AlarmStatus, Change, State
 from hub.batch_feed import BatchFeed, FedBatch
@@ -136,7 +136,7 @@ class Supervisor:
 
     def start(self) -> None:
         self.started_ns = time.time_ns()
-        if self.screens:  # value alarms: their one-pass kernel compiled before the first batch
+        if self.screens:  # value alarms: their one-pass loop compiled meanwhile (numpy until then)
             warm_up(self.journal.path.parent / "cache")
         self._restore(self.journal.load())
         self.journal.open()
@@ -149,6 +149,7 @@ class Supervisor:
         if self._thread.is_alive():
             self._thread.join(5.0)
         self._consumer.stop()
+        settle(30.0)  # a compile still running is not left inside LLVM at exit
         self.journal.close()
         self._publish()
 
