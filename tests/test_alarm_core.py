@@ -173,6 +173,18 @@ def test_batch_extremes_agree_with_numpy(scans: int, extremes):
     assert nan.tolist() == np.isnan(data).any(axis=0).tolist()
 
 
+@pytest.mark.parametrize("channels", [1, 3, 4, 5, 7, 12])
+def test_the_compiled_loop_takes_channels_four_at_a_time_and_the_rest_one_by_one(channels: int):
+    rng = np.random.default_rng(channels)
+    data = rng.normal(size=(999, channels))
+    data[rng.integers(999), channels - 1] = np.nan
+    data[rng.integers(999), 0] = -np.inf
+    assert warm_up(wait=None) is not None, kernel_error()
+    got, want = batch_extremes(data), numpy_extremes(data)
+    for a, b in zip(got, want, strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_a_stream_screen_passes_exactly_the_batches_a_condition_could_change_on():
     """Against `could_change` for each condition, over random batches and condition states."""
     rng = np.random.default_rng(3)

@@ -2,11 +2,12 @@
 what value alarms screen every batch with (`hub.alarms.conditions.StreamScreen`).
 
 A T8 batch (4000 scans x 8 channels, 256 KB) has usually just left main memory, and reading it
-is most of the cost: numpy needs two reductions (a maximum, then a minimum; 56 µs per batch
-in `bench/alarms.py`), a loop compiled by numba reads it once (33 µs). That one pass is the
-difference between value alarms costing 11.7 % and about 7 % of what recording the same
-batch costs, so the hub uses numba when it is installed (the ``hub`` extra) and numpy
-otherwise, with the same results (tests/test_alarm_core.py checks the two against each other).
+is most of the cost: numpy needs two reductions (a maximum, then a minimum; ~56-68 µs per
+batch in `bench/alarms.py`), a loop compiled by numba reads it once (~40 µs from memory, 25 µs
+from cache). That one pass is the difference between value alarms costing 11.7 % and well
+under 10 % of what recording the same batch costs, so the hub uses numba when it is installed
+(the ``hub`` extra) and numpy otherwise, with the same results (tests/test_alarm_core.py
+checks the two against each other).
 
 numba compiles the loop once and caches it: beside this file where that is writable, else in
 the hub's data folder (``cache/numba``), so a hub whose package is read-only (systemd's
@@ -128,26 +129,43 @@ def _compile(cache_dir: Path | None) -> Callable[..., None]:
 
 
 def _one_pass(x: Any, lo: Any, hi: Any, bad: Any) -> None:  # pragma: no cover (compiled)
-    """The loop numba compiles. Selects, not branches: a wave sets a new extreme on one
-    channel or another every few samples, and mispredicted branches made a branchy loop no
-    faster than numpy on real signals (68 µs). A NaN fails every comparison, so it never
-    becomes an extreme; it is found by a sum of ``v * 0``, which only NaN and ±inf make NaN
-    (`batch_extremes` tells those apart)."""
+    """The loop numba compiles: four channels at a time, their running extremes in registers
+    (the same loop over arrays of running extremes was twice as slow: every sample went
+    through memory). Selects, not branches: on a real wave a new extreme comes every few
+    samples on one channel or another, and a branchy loop was no faster than numpy. A NaN
+    fails every comparison, so it never becomes an extreme; it is found by a sum of
+    ``v * 0``, which only NaN and ±inf make NaN (`batch_extremes` tells those apart)."""
     scans, channels = x.shape
-    zero = np.zeros(channels)
-    for j in range(channels):
-        lo[j] = np.inf
-        hi[j] = -np.inf
-    for i in range(scans):
-        for j in range(channels):
+    for j0 in range(0, channels - 3, 4):
+        l0 = l1 = l2 = l3 = np.inf
+        h0 = h1 = h2 = h3 = -np.inf
+        z0 = z1 = z2 = z3 = 0.0
+        for i in range(scans):
+            v0, v1, v2, v3 = x[i, j0], x[i, j0 + 1], x[i, j0 + 2], x[i, j0 + 3]
+            l0 = v0 if v0 < l0 else l0
+            l1 = v1 if v1 < l1 else l1
+            l2 = v2 if v2 < l2 else l2
+            l3 = v3 if v3 < l3 else l3
+            h0 = v0 if v0 > h0 else h0
+            h1 = v1 if v1 > h1 else h1
+            h2 = v2 if v2 > h2 else h2
+            h3 = v3 if v3 > h3 else h3
+            z0 += v0 * 0.0
+            z1 += v1 * 0.0
+            z2 += v2 * 0.0
+            z3 += v3 * 0.0
+        lo[j0], lo[j0 + 1], lo[j0 + 2], lo[j0 + 3] = l0, l1, l2, l3
+        hi[j0], hi[j0 + 1], hi[j0 + 2], hi[j0 + 3] = h0, h1, h2, h3
+        bad[j0], bad[j0 + 1] = np.isnan(z0), np.isnan(z1)
+        bad[j0 + 2], bad[j0 + 3] = np.isnan(z2), np.isnan(z3)
+    for j in range(channels - channels % 4, channels):  # the last 1 to 3 channels, one by one
+        lj, hj, zj = np.inf, -np.inf, 0.0
+        for i in range(scans):
             v = x[i, j]
-            a = lo[j]
-            lo[j] = v if v < a else a
-            b = hi[j]
-            hi[j] = v if v > b else b
-            zero[j] += v * 0.0
-    for j in range(channels):
-        bad[j] = zero[j] != zero[j]
+            lj = v if v < lj else lj
+            hj = v if v > hj else hj
+            zj += v * 0.0
+        lo[j], hi[j], bad[j] = lj, hj, np.isnan(zj)
 
 
 def numpy_extremes(values: npt.NDArray[np.float64]) -> Extremes:
