@@ -54,7 +54,7 @@ from _common import (
 
 from edge.config.load import parse_config
 from edge.wire import decode_batch, read_header
-from hub.alarms.extremes import warm_up
+from hub.alarms.kernels import warm_up
 from hub.alarms.supervisor import Supervisor
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus

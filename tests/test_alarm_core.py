@@ -13,8 +13,15 @@ import pytest
 from edge.config.load import parse_config
 from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, StreamScreen
 from hub.alarms.definitions import build_definitions
-from hub.alarms.extremes import batch_extremes, kernel_error, numpy_extremes, warm_up
 from hub.alarms.journal import Journal
+from hub.alarms.kernels import (
+    batch_extremes,
+    kernel_error,
+    numpy_extremes,
+    numpy_flips,
+    raw_flips,
+    warm_up,
+)
 from hub.alarms.requests import BadRequest, parse_request
 from hub.alarms.states import AlarmStatus, Refused, State
 
@@ -173,7 +180,7 @@ def test_batch_extremes_agree_with_numpy(scans: int, extremes):
     assert nan.tolist() == np.isnan(data).any(axis=0).tolist()
 
 
-@pytest.mark.parametrize("channels", [1, 3, 4, 5, 7, 12])
+@pytest.mark.parametrize("channels", [1, 3, 4, 5, 7, 8, 12, 13, 16, 19])
 def test_the_compiled_loop_takes_channels_four_at_a_time_and_the_rest_one_by_one(channels: int):
     rng = np.random.default_rng(channels)
     data = rng.normal(size=(999, channels))
@@ -183,6 +190,23 @@ def test_the_compiled_loop_takes_channels_four_at_a_time_and_the_rest_one_by_one
     got, want = batch_extremes(data), numpy_extremes(data)
     for a, b in zip(got, want, strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("check", ["above", "below", "fault"])
+@pytest.mark.parametrize("raw", [False, True])
+def test_the_compiled_flips_are_numpys_on_a_channel_of_a_batch(check: str, raw: bool):
+    """On a column of a batch as the supervisor hands it over (a strided view), with a
+    deadband, samples inside it, and invalid samples."""
+    rng = np.random.default_rng(len(check) + raw)
+    data = np.round(rng.normal(scale=3.0, size=(4000, 8)), 1)
+    data[rng.integers(4000, size=40), 2] = np.nan
+    data.setflags(write=False)
+    column = data[:, 2]
+    threshold, clear_at = (1.0, 0.5) if check == "above" else (-1.0, -0.5)
+    assert warm_up(wait=None) is not None, kernel_error()
+    got = raw_flips(column, check, threshold, clear_at, raw)
+    assert got == numpy_flips(column, check, threshold, clear_at, raw)
+    assert len(got) > 10
 
 
 def test_a_stream_screen_passes_exactly_the_batches_a_condition_could_change_on():

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from hub.alarms.kernels import raw_flips
+
 MAX_FLIPS_PER_BATCH = 64
 """A condition flipping more often than this within one batch is chattering: only its first
 flips and its final state are reported (the rest are counted in `chatter_skipped`)."""
@@ -110,28 +112,11 @@ class SampleCondition:
     def evaluate(self, x: npt.NDArray[np.float64], t0_ns: int, period_ns: float) -> list[Flip]:
         """The delayed condition's flips within this batch (`x`: one channel's samples)."""
         n = x.size
-        if self.check == "fault":
-            on = np.isnan(x)
-            off = ~on
-        elif self.check == "above":
-            on = x > self.threshold
-            off = x < self.clear_at
-        else:
-            on = x < self.threshold
-            off = x > self.clear_at
-        # The raw condition changes where the last decisive sample changes sign.
-        decisive = np.flatnonzero(on | off)
-        if decisive.size:
-            sign = on[decisive]
-            prev = np.concatenate(([self.raw], sign[:-1]))
-            at = decisive[sign != prev]
-            new = sign[sign != prev]
-        else:
-            at = np.empty(0, dtype=np.intp)
-            new = np.empty(0, dtype=bool)
+        at = raw_flips(x, self.check, self.threshold, self.clear_at, self.raw)
         flips: list[Flip] = []
         raw, since = self.raw, self.raw_since
-        points = list(zip(at.tolist(), new.tolist(), strict=True))
+        # Each point changes the raw condition: they alternate, starting with the other side.
+        points = [(i, (k % 2 == 0) != self.raw) for k, i in enumerate(at)]
         if len(points) > MAX_FLIPS_PER_BATCH:
             self.chatter_skipped += len(points) - MAX_FLIPS_PER_BATCH
             points = points[: MAX_FLIPS_PER_BATCH - 1] + points[-1:]

@@ -21,17 +21,14 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
-
 from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.messages import ALARM_STATE_TYPE, AlarmState
 from edge.wire import batch_values
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
 from hub.alarms.definitions import AlarmDef, build_definitions
-from hub.alarms.extremes import batch_extremes, settle, warm_up
 from hub.alarms.journal import Journal
+from hub.alarms.kernels import batch_extremes, settle, warm_up
 from hub.alarms.states import IN_ALARM, AlarmStatus, Change, State
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -223,14 +220,12 @@ class Supervisor:
         period = h.sample_period_ns
         for col in busy:
             lo, hi, nan = float(lo_a[col]), float(hi_a[col]), bool(nan_a[col])
-            column: npt.NDArray[np.float64] | None = None
+            column = values[:, col]  # a view: the compiled loop reads it in place
             for a in by_col[col]:
                 cond = a.samples
                 assert cond is not None
                 if not cond.could_change(lo, hi, nan):
                     continue
-                if column is None:
-                    column = np.ascontiguousarray(values[:, col])
                 flips = cond.evaluate(column, h.first_sample_time_ns, period)
                 if flips:
                     with self.lock:
