@@ -14,8 +14,9 @@ median of its rounds (the machine is shared: one pass alone moves by a third bet
 
 Part 2 (bench/record.py's hub run: publisher processes into the real hub, each replaying a
 minute of signal as fast as it can): recorded MB/s without alarms, then with the typical 4
-value alarms on every channel of every stream; the alarm transitions per second are reported
-(faster than real time, so more than a real site's). Target: >= 0.9 x.
+value alarms on every channel of every stream, then without again (A-B-A); the alarm
+transitions per second are reported (faster than real time, so more than a real site's).
+Target: "on" >= 0.9 x the mean of the two "off" runs.
 
 Progress on stderr; the last line on stdout is one JSON object with the figures.
 """
@@ -191,7 +192,9 @@ def part2(args: argparse.Namespace, tmp: Path, log: Progress) -> dict[str, Any]:
     probe = parse_config(site_yaml(1, 7447, str(tmp)), "<bench>")
     limits = limits_from(PayloadPool(t8_stream(probe, node_name(0)), node_name(0), 600, 7), False)
     out: dict[str, Any] = {}
-    for label, lim in (("off", None), ("on", limits)):
+    # Off, on, off again (A-B-A): the machine is shared and drifts; the ratio is "on" over the
+    # mean of the two "off" runs.
+    for label, lim in (("off", None), ("on", limits), ("off_again", None)):
         log(f"hub run with alarms {label}")
         run_dir = tmp / f"run-{label}"
         run_dir.mkdir()
@@ -210,7 +213,8 @@ def part2(args: argparse.Namespace, tmp: Path, log: Progress) -> dict[str, Any]:
         }
         log(f"alarms {label}: {mb_s:.1f} MB/s recorded, gaps {hub.gaps}")
         shutil.rmtree(run_dir, ignore_errors=True)
-    out["ratio"] = rounded(out["on"]["mb_per_s"] / out["off"]["mb_per_s"])
+    off = (out["off"]["mb_per_s"] + out["off_again"]["mb_per_s"]) / 2
+    out["ratio"] = rounded(out["on"]["mb_per_s"] / off)
     return out
 
 
