@@ -56,8 +56,8 @@ class _Compiled:
         except Exception as err:  # a broken numba must not stop the alarms: numpy does
             self.error = f"numba failed: {err!r}"
         if self.error:
-            log.warning("value alarms screen batches with numpy (%s): about 1.5 x the CPU of "
-                        "the compiled one-pass loop", self.error)  # fmt: skip
+            log.warning("value alarms screen batches with numpy (%s): about twice the CPU of "
+                        "the compiled loops", self.error)  # fmt: skip
 
 
 _compiled = _Compiled()
