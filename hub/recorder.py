@@ -584,9 +584,11 @@ class Recorder:
         elif not self._guarded("flushing", self.session.flush):
             return
         self._unflushed = []  # durable now
-        if self._recovering():
-            # The flush went through: writing works again. The held events go in now and are
-            # made durable by the next flush (held again if that fails).
+        if self._recovering() and self.session.current_file is not None:
+            # The flush of a file went through: writing works again. The held events go in
+            # now and are made durable by the next flush (held again if that fails). With no
+            # file open (abandoned, nothing written since) the flush wrote nothing and proves
+            # nothing: the next batch opens a file, and its flush tells.
             self._resumed()
         put = self.router.session.put
         for st in self.streams.values():

@@ -19,6 +19,7 @@ import re
 import resource
 import signal
 import subprocess
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -409,11 +410,28 @@ class SmallTmpfs(FullDisk):
         with self.filler.open("wb", buffering=0) as fh:
             while _written(fh, block):
                 pass
+        # Kept full until `free`: a page the hub itself frees meanwhile (a file it replaces or
+        # truncates) is taken back within 20 ms, so its next retry, 2 s on, meets a full disk.
+        self._stop = threading.Event()
+        self._keeper = threading.Thread(target=self._keep_full, daemon=True)
+        self._keeper.start()
+
+    def _keep_full(self) -> None:
+        page = b"\x00" * 4096
+        with self.filler.open("ab", buffering=0) as fh:
+            while not self._stop.wait(0.02):
+                while _written(fh, page):
+                    pass
 
     def free(self, hub: Proc) -> None:
+        self._stop.set()
+        self._keeper.join(5)
         self.filler.unlink()
 
     def close(self) -> None:
+        if hasattr(self, "_stop"):
+            self._stop.set()
+            self._keeper.join(5)
         subprocess.run(["umount", "-l", str(self.mnt)], check=False, capture_output=True)
 
 
