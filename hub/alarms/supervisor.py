@@ -221,17 +221,22 @@ class Supervisor:
         for col in busy:
             lo, hi, nan = float(lo_a[col]), float(hi_a[col]), bool(nan_a[col])
             column = values[:, col]  # a view: the compiled loop reads it in place
-            for a in by_col[col]:
-                cond = a.samples
-                assert cond is not None
-                if not cond.could_change(lo, hi, nan):
-                    continue
-                flips = cond.evaluate(column, h.first_sample_time_ns, period)
-                if flips:
-                    with self.lock:
-                        for flip in flips:
-                            self._flip(a, flip)
-            screen.refresh(col)
+            try:
+                for a in by_col[col]:
+                    cond = a.samples
+                    assert cond is not None
+                    if not cond.could_change(lo, hi, nan):
+                        continue
+                    flips = cond.evaluate(column, h.first_sample_time_ns, period)
+                    if flips:
+                        with self.lock:
+                            for flip in flips:
+                                self._flip(a, flip)
+            finally:
+                # Even when a transition failed (its error goes to the feed's log): a band
+                # left from before a condition changed would screen out the batches that
+                # change it back.
+                screen.refresh(col)
 
     # --- stream, node and hub alarms: from the read model ---------------------------------------
 
