@@ -15,6 +15,7 @@ import math
 import threading
 import warnings
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,6 +73,7 @@ class LivePlots:
                     latest=np.full(n, np.nan),
                 )
         self._lock = threading.Lock()
+        self._on_write: Callable[[], None] | None = None
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
 
     def start(self) -> None:
@@ -82,6 +84,11 @@ class LivePlots:
 
     def failure(self) -> str | None:
         return None
+
+    def on_write(self, callback: Callable[[], None] | None) -> None:
+        """Call `callback` (from the feed's thread; it must be quick) after every batch is
+        written, so live plots follow new data when it comes; None: stop."""
+        self._on_write = callback
 
     def streams(self) -> dict[str, dict[str, Any]]:
         """``node/stream`` -> channels, units, bucket, newest sample time, newest values."""
@@ -127,6 +134,9 @@ class LivePlots:
                 ring.latest = data[-1].copy()
                 ring.latest_ns = int(t[-1])
                 ring.last_receive_ns = b.recv_ns
+        callback = self._on_write
+        if callback is not None:
+            callback()
 
     # --- frames -----------------------------------------------------------------------------------
 
@@ -271,7 +281,20 @@ class Columns:
     channels: tuple[str, ...]
     units: tuple[str, ...]
     minmax: npt.NDArray[np.float32]
-    """(channels, 2, width): per channel the minima, then the maxima; NaN where no sample fell."""
+    """(channels, 2, columns): per channel the minima, then the maxima of columns `first_col`
+    to `newest_col` (all `width` of them, or those a `PlotFollower.delta` holds); NaN where no
+    sample fell."""
+    column_ns: int = 0
+    first_col: int = 0
+    newest_col: int = 0
+    base_col: int | None = None
+    """A delta's starting point: the newest column of the version it applies to (None: every
+    column is here)."""
+
+    @property
+    def full(self) -> bool:
+        """Every column of the plot, not a delta."""
+        return self.base_col is None
 
 
 class PlotFollower:
@@ -304,9 +327,12 @@ class PlotFollower:
         self._minmax = np.full((len(cols), 2, width), np.nan, dtype=np.float32)
         self._newest_col: int | None = None
         self._writes = 0
+        self._recomputed: deque[tuple[int, int, int]] = deque(maxlen=64)
+        """(version, first column recomputed, newest column) of the last updates: what a client
+        that holds an older version is missing (`delta`)."""
         self.latest_ns = 0
         self.version = 0
-        """Changes whenever `update` changed the columns."""
+        """Goes up by one whenever `update` changed the columns."""
 
     def update(self) -> bool:
         """Bring the columns up to the stream's newest data; False when nothing was new."""
@@ -353,6 +379,7 @@ class PlotFollower:
         self._newest_col = newest
         self.latest_ns = latest
         self.version += 1
+        self._recomputed.append((self.version, start, newest))
         count = newest + 1 - start  # columns recomputed: emptied, then filled where data fell
         a = start % width
         self._minmax[:, :, a : a + count] = np.nan
@@ -363,17 +390,44 @@ class PlotFollower:
             self._minmax[:, 1, put] = phi.T
         return True
 
+    @property
+    def newest_col(self) -> int:
+        """The newest column's number on the grid (its start is ``newest_col * column_ns``)."""
+        return self._newest_col if self._newest_col is not None else 0
+
     def columns(self) -> Columns:
         """The plot as of the last `update`, oldest column first."""
-        newest = self._newest_col if self._newest_col is not None else 0
+        return self.delta(0)
+
+    def delta(self, since: int) -> Columns:
+        """What a client that holds version `since` of this plot needs to show the current one:
+        the columns recomputed since then (on a live stream: those of the batches it has not
+        seen, a hundredth of a 10 s plot per 100 ms batch), or every column when it holds none
+        (0), or an older version than the last 64 updates, or the plot has moved on by more
+        than its width. ``first_col`` says which; ``minmax`` holds columns ``first_col`` to
+        `newest_col`."""
+        newest, width = self.newest_col, self.width
+        oldest = newest - width + 1
+        first, base = oldest, None
+        held = self._recomputed
+        if 0 < since < self.version and held and held[0][0] <= since:
+            start = min(s for v, s, _ in held if v > since)
+            if start > oldest:  # else the client is missing every column
+                first, base = start, held[since - held[0][0]][2]
+        elif since == self.version:
+            first, base = newest + 1, newest
         cw = self.column_ns
         return Columns(
             stream=self.stream,
-            start_ns=(newest - self.width + 1) * cw,
+            start_ns=oldest * cw,
             end_ns=(newest + 1) * cw,
-            width=self.width,
+            width=width,
             latest_ns=self.latest_ns,
             channels=self.channels,
             units=self.units,
-            minmax=np.roll(self._minmax, -((newest + 1) % self.width), axis=2),
+            minmax=self._minmax[:, :, np.arange(first, newest + 1) % width],
+            column_ns=cw,
+            first_col=first,
+            newest_col=newest,
+            base_col=base,
         )

@@ -180,3 +180,63 @@ def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: Live
     cols = live.columns()
     assert cols.start_ns > t0 + 3599 * 10**9
     assert set(np.unique(cols.minmax[~np.isnan(cols.minmax)])) == {7.0}
+
+
+def test_deltas_bring_every_client_to_the_whole_plot_however_often_it_is_sent_one():
+    from hub.web import frames
+
+    site = parse_config(SITE, "<test>")
+    plots = LivePlots(site, BatchFeed(), window_s=10.0)
+    rng = np.random.default_rng(5)
+    enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
+    t0 = 1_800_000_000_000_000_321
+    per, width, span = 4000, 200, 2.0
+    live = plots.follow("wec/t8", None, width, span)
+
+    def send(since: int) -> tuple[bytes, frames.Columns]:
+        cols = live.delta(since)
+        return frames.message("p", *frames.pack_columns(cols)), cols
+
+    every, third = frames.Assembler(), frames.Assembler()
+    have = {"every": 0, "third": 0}
+    order = [0, 1, 3, 4, 2, 5, 6, 7, 8, 9, 10, 11]  # batch 2 comes late
+    for n, i in enumerate(order):
+        first = t0 + round(i * per * PERIOD)
+        batch = rng.normal(size=(per, 2))
+        plots._on_batch(fed(enc, i, first, batch, late=i < max(order[:n], default=-1)))
+        assert live.update()
+        msg, cols = send(have["every"])
+        assert cols.full == (have["every"] == 0)
+        if not cols.full:
+            assert cols.newest_col - cols.first_col + 1 < width // 2, "a delta is what changed"
+        assert every.apply(msg)
+        have["every"] = live.version
+        if n % 3 == 2:
+            assert third.apply(send(have["third"])[0])
+            have["third"] = live.version
+        whole = live.columns()
+        assert whole.full
+        np.testing.assert_array_equal(every.minmax, whole.minmax)
+        assert every.newest == whole.newest_col
+    np.testing.assert_array_equal(third.minmax, live.columns().minmax)
+
+    # A delta on a frame the client does not hold is refused, not applied.
+    stale = frames.Assembler()
+    stale.apply(send(0)[0])
+    stale.newest -= 1
+    plots._on_batch(fed(enc, 12, t0 + round(12 * per * PERIOD), rng.normal(size=(per, 2))))
+    live.update()
+    assert not stale.apply(send(live.version - 1)[0])
+    assert send(live.version)[1].newest_col - send(live.version)[1].first_col + 1 == 0
+
+    # Too far behind (older than the last 64 updates), or a jump past the span: whole frames.
+    old = live.version - 1
+    for i in range(13, 13 + 70):
+        plots._on_batch(fed(enc, i, t0 + round(i * per * PERIOD), rng.normal(size=(per, 2))))
+        live.update()
+    assert live.delta(old).full
+    assert not live.delta(live.version - 1).full
+    v = live.version
+    plots._on_batch(fed(enc, 99, t0 + 3600 * 10**9, rng.normal(size=(per, 2))))
+    live.update()
+    assert live.delta(v).full, "an hour later nothing of the old plot is left"

@@ -22,9 +22,6 @@ in a thread of its own; until it is ready (about a second; less from the cache) 
 from __future__ import annotations
 
 import functools
-import logging
-import os
-import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -32,46 +29,21 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-log = logging.getLogger("fleetdaq.alarms")
+from hub.jit import Compiled
 
 Extremes = tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]
-
-
-class _Compiled:
-    """The kernel, compiled once per process in a thread of its own (None until then, or for
-    good when numba is missing or fails: numpy), and why not."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.thread: threading.Thread | None = None
-        self.kernel: Callable[..., None] | None = None
-        self.flips: Callable[..., int] | None = None
-        self.error = ""
-
-    def build(self, cache_dir: Path | None) -> None:
-        try:
-            self.flips, self.kernel = _compile(cache_dir)
-        except ImportError:
-            self.error = "numba is not installed"
-        except Exception as err:  # a broken numba must not stop the alarms: numpy does
-            self.error = f"numba failed: {err!r}"
-        if self.error:
-            log.warning("value alarms screen batches with numpy (%s): about twice the CPU of "
-                        "the compiled loops", self.error)  # fmt: skip
-
-
-_compiled = _Compiled()
 
 
 def batch_extremes(values: npt.NDArray[np.float64]) -> Extremes:
     """Per channel of a C-contiguous (scans, channels) batch: the minimum and maximum of its
     valid samples (+inf and -inf for a channel with none), and whether any sample is NaN.
     numpy until the compiled loop is ready (`warm_up`)."""
-    kernel = _compiled.kernel
-    if kernel is None:
+    kernels = _compiled.value
+    if kernels is None:
         if _compiled.thread is None:
             warm_up()
         return numpy_extremes(values)
+    kernel = kernels[1]
     channels = values.shape[1]
     lo = np.empty(channels)
     hi = np.empty(channels)
@@ -83,29 +55,16 @@ def batch_extremes(values: npt.NDArray[np.float64]) -> Extremes:
 
 
 def warm_up(cache_dir: Path | None = None, wait: float | None = 0.0) -> Callable[..., None] | None:
-    """Start compiling (or loading from the cache) the one-pass kernel in a thread of its own,
-    so a hub starts as fast without it (a compile takes about a second here, longer on a
-    small computer); batches use numpy meanwhile. Waits up to `wait` seconds for it (None:
-    as long as it takes). Returns the kernel, or None: not ready yet, or numba is missing or
-    failed (`kernel_error` says why). Only the first call starts a compile."""
-    c = _compiled
-    with c.lock:
-        if c.thread is None:
-            c.thread = threading.Thread(
-                target=c.build, args=(cache_dir,), name="alarms-compile", daemon=True
-            )
-            c.thread.start()
-    if wait is None or wait > 0:
-        c.thread.join(wait)
-    return c.kernel
+    """Start compiling (or loading from the cache) the kernels in a thread of their own (see
+    `hub.jit.Compiled.warm_up`); batches use numpy meanwhile. Returns the one-pass kernel, or
+    None: not ready yet, or numba is missing or failed (`kernel_error` says why)."""
+    kernels = _compiled.warm_up(cache_dir, wait)
+    return kernels[1] if kernels is not None else None
 
 
 def settle(timeout: float) -> None:
-    """Wait up to `timeout` for a compile started by `warm_up` (none started: no wait), so a
-    stopping hub does not exit with a thread inside LLVM."""
-    thread = _compiled.thread
-    if thread is not None:
-        thread.join(timeout)
+    """Wait up to `timeout` for a compile started by `warm_up` (none started: no wait)."""
+    _compiled.settle(timeout)
 
 
 def kernel_error() -> str:
@@ -113,14 +72,7 @@ def kernel_error() -> str:
     return _compiled.error
 
 
-def _compile(cache_dir: Path | None) -> tuple[Callable[..., int], Callable[..., None]]:
-    here = Path(__file__).resolve().parent
-    if not os.access(here, os.W_OK) and "NUMBA_CACHE_DIR" not in os.environ and cache_dir:
-        os.environ["NUMBA_CACHE_DIR"] = str(cache_dir / "numba")
-    import numba  # the hub extra's; imported only when a stream has value alarms
-
-    cache = os.access(here, os.W_OK) or "NUMBA_CACHE_DIR" in os.environ
-    jit = numba.njit(nogil=True, cache=cache, boundscheck=False)
+def _compile(jit: Any) -> tuple[Callable[..., int], Callable[..., None]]:
     extremes: Callable[..., None] = jit(_one_pass)
     flips: Callable[..., int] = jit(_flips)
     # Compiled now for every kind of array they are given (a float64 payload's read-only
@@ -142,6 +94,13 @@ def _compile(cache_dir: Path | None) -> tuple[Callable[..., int], Callable[..., 
     return flips, extremes
 
 
+_compiled = Compiled(
+    "alarms-compile",
+    __file__,
+    _compile,
+    "value alarms screen batches with numpy: about twice the CPU of the compiled loops",
+)
+
 _CHECKS = {"fault": 0, "above": 1, "below": 2}
 
 
@@ -150,11 +109,12 @@ def raw_flips(x: Any, check: str, threshold: float, clear_at: float, raw: bool) 
     `raw`: "above"/"below" `threshold` (back to the other side past `clear_at`, the deadband),
     or "fault" (invalid). A sample inside the deadband, or NaN for a limit, changes nothing.
     The states alternate from ``not raw``."""
-    kernel = _compiled.flips
-    if kernel is None:
+    kernels = _compiled.value
+    if kernels is None:
         if _compiled.thread is None:
             warm_up()
         return numpy_flips(x, check, threshold, clear_at, raw)
+    kernel = kernels[0]
     out = np.empty(x.shape[0], dtype=np.intp)
     n = kernel(x, _CHECKS[check], threshold, clear_at, raw, out)
     return out[:n].tolist()  # type: ignore[no-any-return]

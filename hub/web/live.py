@@ -7,9 +7,9 @@ Server -> client (JSON text messages):
   "outputs": <commands.listing()>, "dashboard": <the dashboard's counters>}`` at 1 Hz;
 - ``{"type": "events", "events": [...]}``: the last events at connect, then what is new;
 - a binary message per plot frame (`hub.web.frames`: a JSON header with the client's plot id,
-  then min/max per pixel column as float32), sent when its stream has new data (checked 20
-  times a second, so a stream of 100 ms batches plots at 10 frames/s and a frame waits at most
-  50 ms);
+  then min/max per pixel column as float32), sent as soon as its stream has new data (a stream
+  of 100 ms batches plots at 10 frames/s). The first frame of a plot is whole, the next ones
+  are deltas: only the columns recomputed since the frame that client was last sent;
 - ``{"type": "error", "error": text}``: the client sent something that is not a valid request.
 
 Client -> server: ``{"type": "plots", "plots": [{"id", "stream", "channels", "width",
@@ -18,7 +18,9 @@ Client -> server: ``{"type": "plots", "plots": [{"id", "stream", "channels", "wi
 Each client has a bounded outbox: one pending state, one pending frame per plot, at most 500
 pending events. A client slower than the hub's pace has its pending item replaced by the newer
 one (counted as dropped), so it always gets the latest and never grows the hub's memory. The
-state and each distinct frame are built and serialised once per tick for every client.
+state and each distinct frame are built and serialised once per tick for every client. A
+pending frame that is replaced is rebuilt from what the client was last sent, so a delta never
+skips one.
 """
 
 from __future__ import annotations
@@ -47,7 +49,6 @@ from hub.web.stats import WebStats
 log = logging.getLogger("fleetdaq.dashboard")
 
 STATE_PERIOD_S = 1.0
-FRAME_PERIOD_S = 0.05
 MAX_PLOTS = 8
 MAX_CHANNELS = 16
 MAX_WIDTH = 4000
@@ -55,6 +56,9 @@ MAX_CLIENTS = 64
 MAX_BAD_MESSAGES = 50
 PENDING_EVENTS = 500
 
+
+ERROR_SLOT = "\0error"
+"""The outbox slot of the last error message (no plot id can be this)."""
 
 PlotKey = tuple[str, tuple[str, ...], int, float]
 """stream, channels, width, span: the plots that are the same for every client."""
@@ -83,10 +87,13 @@ class Client:
     ending: bool = False
     """Its sender closes the socket (4001: log in again) instead of sending more."""
     plots: dict[str, PlotRequest] = field(default_factory=dict)
-    sent_latest: dict[str, int] = field(default_factory=dict)
-    """Per plot id, the follower's version of the last frame queued: no frame twice."""
+    have: dict[str, int] = field(default_factory=dict)
+    """Per plot id, the follower's version of the last frame taken out to be sent: what the
+    next delta starts from."""
     state: str | None = None
     frames: dict[str, str | bytes] = field(default_factory=dict)
+    frame_versions: dict[str, int] = field(default_factory=dict)
+    """Per plot id, the follower's version a pending frame brings the client to."""
     events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=PENDING_EVENTS))
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     dropped: int = 0
@@ -102,11 +109,24 @@ class Client:
         self.state = text
         self.wake.set()
 
-    def offer_frame(self, plot: str, text: str | bytes) -> None:
+    def offer_frame(self, plot: str, text: str | bytes, version: int = 0) -> None:
         if plot in self.frames:
             self._drop()
         self.frames[plot] = text
+        if version:
+            self.frame_versions[plot] = version
         self.wake.set()
+
+    def queued(self, plot: str) -> int:
+        """The version of `plot` this client has or will have once its outbox is sent."""
+        return self.frame_versions.get(plot) or self.have.get(plot, 0)
+
+    def new_plots(self, plots: list[PlotRequest]) -> None:
+        """Its plots replaced: every plot starts again with a whole frame."""
+        self.plots = {p.id: p for p in plots}
+        self.have = {}
+        self.frame_versions = {}
+        self.frames = {k: v for k, v in self.frames.items() if k == ERROR_SLOT}
 
     def offer_events(self, events: list[dict[str, Any]]) -> None:
         overflow = len(self.events) + len(events) - PENDING_EVENTS
@@ -125,6 +145,8 @@ class Client:
             self.events.clear()
         out.extend(self.frames.values())
         self.frames.clear()
+        self.have.update(self.frame_versions)
+        self.frame_versions.clear()
         return out
 
 
@@ -188,6 +210,8 @@ class Live:
         self._senders: set[asyncio.Task[None]] = set()
         self._event_seq = 0
         self._followed: dict[PlotKey, _Followed] = {}
+        self._new_data = asyncio.Event()
+        self._listening = False
         self.closing = False
 
     def add_routes(self, app: web.Application) -> None:
@@ -196,18 +220,19 @@ class Live:
     def start(self) -> None:
         """Start the tickers (on the service's loop)."""
         self._event_seq = self.events.last_seq
+        self._new_data = asyncio.Event()
         self._tasks = [
             asyncio.create_task(
                 self._every(STATE_PERIOD_S, self._state_tick, "state_cpu_s"), name="dash-state"
             ),
-            asyncio.create_task(
-                self._every(FRAME_PERIOD_S, self._frame_tick, "frames_cpu_s"), name="dash-frames"
-            ),
+            asyncio.create_task(self._frames(), name="dash-frames"),
         ]
 
     async def close(self) -> None:
         """Stop the tickers and say goodbye to every client (1001: going away)."""
         self.closing = True
+        self.parts.live_plots.on_write(None)
+        self._listening = False
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
@@ -277,15 +302,14 @@ class Live:
         except ValueError as err:
             self._refuse(client, str(err))
             return
-        client.plots = {p.id: p for p in plots}
-        client.sent_latest = {}
-        client.frames = {k: v for k, v in client.frames.items() if k in client.plots}
+        client.new_plots(plots)
+        self._new_data.set()  # its first frames now, not when the stream next writes
 
     def _refuse(self, client: Client, why: str) -> None:
         client.bad += 1
         self.stats.ws_bad_messages += 1
         with contextlib.suppress(Exception):
-            client.offer_frame("\0error", json.dumps({"type": "error", "error": why}))
+            client.offer_frame(ERROR_SLOT, json.dumps({"type": "error", "error": why}))
 
     async def _send(self, client: Client) -> None:
         ws = client.ws
@@ -313,17 +337,44 @@ class Live:
         loop = asyncio.get_running_loop()
         next_at = loop.time()
         while True:
-            t0 = time.thread_time()
-            try:
-                tick()
-            except Exception:
-                self.stats.tick_errors += 1
-                if self.stats.tick_errors <= 10 or self.stats.tick_errors % 1000 == 0:
-                    log.exception("dashboard: a live update failed (%d so far)",
-                                  self.stats.tick_errors)  # fmt: skip
-            setattr(self.stats, cpu, getattr(self.stats, cpu) + time.thread_time() - t0)
+            self._run(tick, cpu)
             next_at = max(next_at + period, loop.time())
             await asyncio.sleep(next_at - loop.time())
+
+    async def _frames(self) -> None:
+        """Frames when there is new data: the live plots call back after every batch they
+        write (only while somebody plots), a client's new plots set it too."""
+        while True:
+            await self._new_data.wait()
+            self._new_data.clear()
+            self._run(self._frame_tick, "frames_cpu_s")
+
+    def _run(self, tick: Any, cpu: str) -> None:
+        t0 = time.thread_time()
+        try:
+            tick()
+        except Exception:
+            self.stats.tick_errors += 1
+            if self.stats.tick_errors <= 10 or self.stats.tick_errors % 1000 == 0:
+                log.exception("dashboard: a live update failed (%d so far)",
+                              self.stats.tick_errors)  # fmt: skip
+        setattr(self.stats, cpu, getattr(self.stats, cpu) + time.thread_time() - t0)
+
+    def _listen(self, on: bool) -> None:
+        """Be called back by the live plots while any client plots (nothing costs otherwise)."""
+        if on == self._listening:
+            return
+        self._listening = on
+        if on:
+            loop, new_data = asyncio.get_running_loop(), self._new_data
+
+            def poke() -> None:
+                with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+                    loop.call_soon_threadsafe(new_data.set)
+
+            self.parts.live_plots.on_write(poke)
+        else:
+            self.parts.live_plots.on_write(None)
 
     def _state_text(self) -> str:
         view = self.parts.snapshot()
@@ -366,6 +417,7 @@ class Live:
         keys = {p.key for _, p in wanted}
         for key in [k for k in followed if k not in keys]:
             del followed[key]  # nobody plots it any more
+        self._listen(bool(keys))
         updated: set[PlotKey] = set()
         for c, p in wanted:
             f = followed.get(p.key)
@@ -373,20 +425,30 @@ class Live:
                 f = followed[p.key] = _Followed(
                     self.parts.live_plots.follow(p.stream, list(p.channels), p.width, p.span_s)
                 )
+            follower = f.follower
             if p.key not in updated:
                 updated.add(p.key)
-                if f.follower.update():  # only the columns new data touched are recomputed
-                    f.packed = frames.pack_columns(f.follower.columns())
+                f.packed.clear()
+                f.messages.clear()
+                if follower.update():  # only the columns new data touched are recomputed
                     self.stats.frames_computed += 1
-            if f.packed is None or c.sent_latest.get(p.id) == f.follower.version:
-                continue
-            c.sent_latest[p.id] = f.follower.version
-            c.offer_frame(p.id, frames.message(p.id, *f.packed))
+            if follower.version == 0 or c.queued(p.id) == follower.version:
+                continue  # no data yet, or nothing new for this client
+            since = c.have.get(p.id, 0)
+            msg = f.messages.get((p.id, since))
+            if msg is None:
+                packed = f.packed.get(since)
+                if packed is None:
+                    packed = f.packed[since] = frames.pack_columns(follower.delta(since))
+                msg = f.messages[(p.id, since)] = frames.message(p.id, *packed)
+            c.offer_frame(p.id, msg, follower.version)
 
 
 @dataclass(slots=True)
 class _Followed:
-    """A plot some client shows, followed once for every client that shows it."""
+    """A plot some client shows, followed once for every client that shows it; what a tick
+    packed of it is shared by every client that holds the same version."""
 
     follower: PlotFollower
-    packed: tuple[dict[str, Any], bytes] | None = None
+    packed: dict[int, tuple[dict[str, Any], bytes]] = field(default_factory=dict)
+    messages: dict[tuple[str, int], bytes] = field(default_factory=dict)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from hub.bus import EventBus
-from hub.live_plots import Frame, PlotFollower
+from hub.live_plots import PlotFollower
 from hub.read_model import HubView
 
 
@@ -39,20 +39,13 @@ class Plots(Protocol):
         end_ns: int | None = None,
     ) -> dict[str, Any]: ...
 
-    def frame_arrays(
-        self,
-        stream: str,
-        channels: list[str] | None,
-        width: int,
-        span_s: float,
-        end_ns: int | None = None,
-    ) -> Frame: ...
-
     def follow(
         self, stream: str, channels: list[str] | None, width: int, span_s: float
     ) -> PlotFollower: ...
 
     def streams(self) -> dict[str, dict[str, Any]]: ...
+
+    def on_write(self, callback: Callable[[], None] | None) -> None: ...
 
 
 @dataclass(frozen=True, slots=True)

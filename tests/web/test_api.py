@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 import aiohttp
+import numpy as np
 import pytest
 
 from hub.web import frames
@@ -282,12 +283,20 @@ def test_a_port_held_by_another_program_is_refused_too(make_web: MakeWeb):
 # --- the WebSocket ----------------------------------------------------------------------------
 
 
-async def _receive(ws: aiohttp.ClientWebSocketResponse, kind: str, n: int = 1) -> list[Any]:
+async def _receive(
+    ws: aiohttp.ClientWebSocketResponse,
+    kind: str,
+    n: int = 1,
+    plot: frames.Assembler | None = None,
+) -> list[Any]:
+    """The next `n` messages of `kind`; frames also go to `plot`."""
     out: list[Any] = []
     while len(out) < n:
         msg = await asyncio.wait_for(ws.receive(), 20)
         if msg.type == aiohttp.WSMsgType.BINARY:
             data = frames.unpack(msg.data)
+            if plot is not None:
+                assert plot.apply(msg.data), "every frame applies to the one before"
         else:
             assert msg.type == aiohttp.WSMsgType.TEXT, msg
             data = json.loads(msg.data)
@@ -312,14 +321,26 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
                     {"id": "a", "stream": "wec/t8", "channels": ["surge"], "width": 50,
                      "span_s": 1}]})
             )  # fmt: skip
-            (frame,) = await _receive(ws, "frame")
-            web.feed_batches(3)  # newer data: another frame
-            (again,) = await _receive(ws, "frame")
+            plot = frames.Assembler()
+            (frame,) = await _receive(ws, "frame", plot=plot)
+            web.feed_batches(3)  # newer data: more frames, one per batch
+            (again,) = await _receive(ws, "frame", plot=plot)
+            while again["latest_ns"] < web.plots.streams()["wec/t8"]["latest_ns"]:
+                (again,) = await _receive(ws, "frame", plot=plot)
+            async with s.ws_connect(f"http://127.0.0.1:{web.port}/api/live") as fresh:
+                await fresh.send_str(
+                    json.dumps({"type": "plots", "plots": [
+                        {"id": "a", "stream": "wec/t8", "channels": ["surge"], "width": 50,
+                         "span_s": 1}]})
+                )  # fmt: skip
+                whole = frames.Assembler()
+                await _receive(fresh, "frame", plot=whole)
             await ws.send_str("{bad")
             (error,) = await _receive(ws, "error")
             await ws.send_str(json.dumps({"type": "plots", "plots": [{"id": "b", "stream": "x"}]}))
             (error2,) = await _receive(ws, "error")
-            return {"state": state, "frame": frame, "again": again, "errors": [error, error2]}
+            return {"state": state, "frame": frame, "again": again, "errors": [error, error2],
+                    "assembled": plot.minmax, "whole": whole.minmax}  # fmt: skip
 
     got = asyncio.run(run())
     assert got["state"]["view"]["site"] == "webtest"
@@ -330,6 +351,10 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
     assert len(surge["min"]) == len(surge["max"]) == 50
     assert min(v for v in surge["min"] if not math.isnan(v)) == -99.0, "the batches' values"
     assert got["again"]["latest_ns"] > got["frame"]["latest_ns"]
+    assert got["frame"]["base_col"] is None, "a plot's first frame is whole"
+    assert got["again"]["base_col"] is not None, "then deltas"
+    assert got["again"]["count"] < 50
+    np.testing.assert_array_equal(got["assembled"], got["whole"])
     assert got["errors"][0]["error"] == "not JSON"
     assert "no stream 'x'" in got["errors"][1]["error"]
     assert web.service.stats.ws_bad_messages == 2

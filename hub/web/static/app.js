@@ -11,7 +11,7 @@
     plots: new Map(), nextPlot: 1, autoPlot: true,
   };
   // What the page measured, for operators (shown) and for tests and benchmarks (read).
-  const stats = { states: 0, frames: 0, drawn: 0, delays: [], dropped_by_hub: 0 };
+  const stats = { states: 0, frames: 0, drawn: 0, delays: [], dropped_by_hub: 0, resyncs: 0 };
   window.fleetdaq = { stats };
 
   // --- formatting ------------------------------------------------------------------------------
@@ -247,7 +247,7 @@
   }
   function sendPlots() {
     if (!S.ws || S.ws.readyState !== WebSocket.OPEN) return;
-    const plots = Array.from(S.plots.values()).map((p) => p.request());
+    const plots = Array.from(S.plots.values()).map((p) => { p.awaitFull = true; return p.request(); });
     S.ws.send(JSON.stringify({ type: "plots", plots }));
   }
 
@@ -268,16 +268,18 @@
     renderEvents();
   }
 
-  // A frame: uint32 header length, the JSON header, then per channel `width` minima and `width`
-  // maxima as float32 (NaN: no sample in that column). See hub/web/frames.py.
+  // A frame: uint32 header length, the JSON header, then per channel the minima and the maxima
+  // of columns first_col..newest_col as float32 (NaN: no sample in that column). Whole when
+  // base_col is null, else a delta on the frame whose newest column was base_col. See
+  // hub/web/frames.py (its Assembler does in Python what Plot.apply does here).
   function decodeFrame(buf) {
     const n = new DataView(buf).getUint32(0, true);
     const head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
     const values = new Float32Array(buf, 4 + n);
-    const w = head.width;
-    head.channels = Object.fromEntries(head.channels.map((ch, i) => [ch.name, {
-      unit: ch.unit, min: values.subarray(2 * i * w, (2 * i + 1) * w), max: values.subarray((2 * i + 1) * w, (2 * i + 2) * w),
-    }]));
+    const c = head.newest_col - head.first_col + 1;
+    head.channels = head.channels.map((ch, i) => ({
+      name: ch.name, unit: ch.unit, min: values.subarray(2 * i * c, (2 * i + 1) * c), max: values.subarray((2 * i + 1) * c, (2 * i + 2) * c),
+    }));
     return head;
   }
 
@@ -587,6 +589,9 @@
       this.channels = channels;
       this.span = span;
       this.frame = null;
+      this.cols = null;
+      this.newest = null;
+      this.awaitFull = true;
       this.pending = false;
       this.canvas = el("canvas", { role: "img", "aria-label": `Plot of ${stream}: ${channels.join(", ")}` });
       this.delay = el("span", { class: "muted" });
@@ -609,8 +614,38 @@
       savePlots();
       sendPlots();
     }
+    // The whole plot, kept from whole frames and deltas; false: a delta this plot cannot take
+    // (it missed one, or its width changed): it asks for its plots again, a whole frame follows.
+    apply(msg) {
+      const W = msg.width;
+      if (msg.base_col === null) {
+        this.cols = Object.fromEntries(msg.channels.map((ch) => [ch.name, { unit: ch.unit, min: ch.min.slice(), max: ch.max.slice() }]));
+        this.awaitFull = false;
+      } else {
+        if (this.awaitFull) return false;
+        const any = this.cols && Object.values(this.cols)[0];
+        if (!any || this.newest !== msg.base_col || any.min.length !== W) {
+          stats.resyncs++;
+          sendPlots();
+          return false;
+        }
+        const shift = msg.newest_col - this.newest;
+        const at = msg.first_col - (msg.newest_col - W + 1);
+        for (const ch of msg.channels) {
+          const c = this.cols[ch.name];
+          for (const a of [c.min, c.max]) {
+            if (shift > 0) { a.copyWithin(0, shift); a.fill(NaN, Math.max(0, W - shift)); }
+          }
+          c.min.set(ch.min, at);
+          c.max.set(ch.max, at);
+        }
+      }
+      this.newest = msg.newest_col;
+      this.frame = { width: W, start_ns: msg.start_ns, end_ns: msg.end_ns, latest_ns: msg.latest_ns, channels: this.cols };
+      return true;
+    }
     onFrame(msg, delayMs) {
-      this.frame = msg;
+      if (!this.apply(msg)) return;
       this.lastDelay = delayMs;
       if (!this.pending) {
         this.pending = true;
