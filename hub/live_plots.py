@@ -17,6 +17,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ import numpy.typing as npt
 
 from edge.config.site import SiteConfig
 from edge.wire import batch_values
+from hub import plot_kernels
 from hub.batch_feed import BatchFeed, FedBatch
 
 MIN_BUCKET_NS = 2_000_000
@@ -54,8 +56,15 @@ class _Ring:
 class LivePlots:
     name = "live-plots"
 
-    def __init__(self, site: SiteConfig, feed: BatchFeed, window_s: float = 60.0) -> None:
+    def __init__(
+        self,
+        site: SiteConfig,
+        feed: BatchFeed,
+        window_s: float = 60.0,
+        cache_dir: Path | None = None,
+    ) -> None:
         self.window_s = window_s
+        self._cache_dir = cache_dir
         self._rings: dict[tuple[str, str], _Ring] = {}
         for node, cfg in site.nodes.items():
             for stream, s in cfg.streams.items():
@@ -77,10 +86,12 @@ class LivePlots:
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
 
     def start(self) -> None:
+        plot_kernels.warm_up(self._cache_dir)  # numpy until it is compiled
         self._consumer.start()
 
     def stop(self) -> None:
         self._consumer.stop()
+        plot_kernels.settle(30.0)  # a compile still running is not left inside LLVM at exit
 
     def failure(self) -> str | None:
         return None
@@ -319,6 +330,7 @@ class PlotFollower:
         self._lock = lock
         self._ring = ring
         self._cols = cols
+        self._col_index = np.array(cols, dtype=np.intp)
         self.stream = stream
         self.width = width
         self.column_ns = max(1, round(span_s * 1e9) // width)
@@ -358,6 +370,13 @@ class PlotFollower:
                     first = min(first, k)
                 start = max(oldest, min(seen, (first * ring.bucket_ns) // cw))
             first_bucket = -(-(start * cw) // ring.bucket_ns)
+            if plot_kernels.fold_columns(
+                ring.lo, ring.hi, ring.bucket, ring.bucket_ns, cw, first_bucket, last_bucket,
+                self._col_index, self._minmax, start, newest,
+            ):  # fmt: skip
+                self._writes = ring.writes
+                self._updated(newest, latest, start)
+                return True
             wanted = np.arange(first_bucket, last_bucket + 1, dtype=np.int64)
             i0 = first_bucket % ring.size
             if i0 + wanted.size <= ring.size:  # one stretch of the ring: views, nothing copied
@@ -376,10 +395,7 @@ class PlotFollower:
                     plo = np.fmin.reduceat(lo, edges, axis=0)[:, self._cols]
                     phi = np.fmax.reduceat(hi, edges, axis=0)[:, self._cols]
             self._writes = ring.writes
-        self._newest_col = newest
-        self.latest_ns = latest
-        self.version += 1
-        self._recomputed.append((self.version, start, newest))
+        self._updated(newest, latest, start)
         count = newest + 1 - start  # columns recomputed: emptied, then filled where data fell
         a = start % width
         self._minmax[:, :, a : a + count] = np.nan
@@ -389,6 +405,12 @@ class PlotFollower:
             self._minmax[:, 0, put] = plo.T
             self._minmax[:, 1, put] = phi.T
         return True
+
+    def _updated(self, newest: int, latest: int, start: int) -> None:
+        self._newest_col = newest
+        self.latest_ns = latest
+        self.version += 1
+        self._recomputed.append((self.version, start, newest))
 
     @property
     def newest_col(self) -> int:

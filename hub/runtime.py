@@ -152,7 +152,9 @@ class HubRuntime:
         # Filling the plots costs every batch of every stream (a quarter of the hub's CPU with
         # a hundred small edges): only when something shows them.
         self.live_plots = (
-            LivePlots(site, self.feed) if live_plots or site.hub.dashboard.enabled else None
+            LivePlots(site, self.feed, cache_dir=self.data_dir / "cache")
+            if live_plots or site.hub.dashboard.enabled
+            else None
         )
         self.recorder_requests = RecorderRequests(
             self.router,

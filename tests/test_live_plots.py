@@ -10,6 +10,7 @@ import pytest
 
 from edge.config.load import parse_config
 from edge.wire import BatchEncoder, read_header
+from hub import plot_kernels
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.live_plots import LivePlots
 from ptp.quality import UNSYNCED
@@ -31,6 +32,16 @@ PERIOD = 1e9 / RATE
 def fed(enc: BatchEncoder, seq: int, t0: int, data: np.ndarray, late: bool = False) -> FedBatch:
     payload = bytes(enc.encode(seq, t0, PERIOD, data, UNSYNCED))
     return FedBatch("wec", "t8", read_header(payload), payload, time.time_ns(), late)
+
+
+@pytest.fixture(params=["numpy", "compiled"])
+def fold(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """A followed plot's two ways of folding batches into columns (the same results)."""
+    if request.param == "numpy":
+        monkeypatch.setattr(plot_kernels, "fold_columns", lambda *args: False)
+    else:
+        assert plot_kernels.warm_up(wait=None) is not None, "numba is in the hub extra"
+    return str(request.param)
 
 
 @pytest.fixture
@@ -119,7 +130,9 @@ def _grid_truth(
     return lo, hi
 
 
-def test_a_followed_plot_updated_batch_by_batch_equals_one_computed_at_once(plots: LivePlots):
+def test_a_followed_plot_updated_batch_by_batch_equals_one_computed_at_once(
+    plots: LivePlots, fold: str
+):
     rng = np.random.default_rng(11)
     enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
     t0 = 1_800_000_000_000_123_457  # not on a bucket or column boundary
@@ -154,7 +167,7 @@ def test_a_followed_plot_updated_batch_by_batch_equals_one_computed_at_once(plot
     assert not np.isnan(got.minmax).any(), "a continuous stream leaves no empty column"
 
 
-def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: LivePlots):
+def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: LivePlots, fold: str):
     enc = BatchEncoder("wec", "t8", ("heave", "force"), ("m", "kN"))
     t0 = 1_800_000_000_000_000_000
     per = 4000
@@ -182,7 +195,7 @@ def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: Live
     assert set(np.unique(cols.minmax[~np.isnan(cols.minmax)])) == {7.0}
 
 
-def test_deltas_bring_every_client_to_the_whole_plot_however_often_it_is_sent_one():
+def test_deltas_bring_every_client_to_the_whole_plot_however_often_it_is_sent_one(fold: str):
     from hub.web import frames
 
     site = parse_config(SITE, "<test>")

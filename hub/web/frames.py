@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import orjson
 
 from hub.live_plots import Columns
 
@@ -47,7 +48,7 @@ def pack_columns(c: Columns) -> tuple[dict[str, Any], bytes]:
 
 def message(plot_id: str, header: dict[str, Any], data: bytes) -> bytes:
     """One client's frame message (its own plot id, the shared columns)."""
-    text = json.dumps({"type": "frame", "id": plot_id, **header}, separators=(",", ":")).encode()
+    text = orjson.dumps({"type": "frame", "id": plot_id, **header})
     text += b" " * (-(4 + len(text)) % 4)
     return struct.pack("<I", len(text)) + text + data
 
