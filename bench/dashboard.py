@@ -164,7 +164,7 @@ def browsers(url: str, control: Path) -> None:
         hub1 = pages[0].evaluate("() => window.fleetdaq.stats.hub")
         out["dashboard_cpu_pct"] = {
             k: round(100 * (hub1[k] - hub0[k]) / elapsed, 2)
-            for k in ("state_cpu_s", "frames_cpu_s", "metrics_cpu_s")
+            for k in ("state_cpu_s", "frames_cpu_s", "metrics_cpu_s", "send_cpu_s", "loop_cpu_s")
         }
         (control / "delays.json").write_text(json.dumps(out))
         for b in instances:

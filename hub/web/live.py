@@ -322,6 +322,7 @@ class Live:
             for text in client.take():
                 if ws.closed:
                     return
+                t0 = time.thread_time()
                 try:
                     if isinstance(text, bytes):
                         await ws.send_bytes(text)
@@ -329,6 +330,7 @@ class Live:
                         await ws.send_str(text)
                 except (ConnectionError, RuntimeError):
                     return
+                self.stats.send_cpu_s += time.thread_time() - t0
                 self.stats.ws_sent += 1
 
     # --- the tickers ------------------------------------------------------------------------------
@@ -394,6 +396,7 @@ class Live:
         client.offer_state(self._state_text())
 
     def _state_tick(self) -> None:
+        self.stats.loop_cpu_s = time.thread_time()
         if not self.clients:
             self._event_seq = self.events.last_seq
             return

@@ -34,6 +34,11 @@ class WebStats:
     """CPU seconds spent on live plot frames."""
     metrics_cpu_s: float = 0.0
     """CPU seconds spent answering /metrics."""
+    send_cpu_s: float = 0.0
+    """CPU seconds spent handing live messages to the WebSocket (framing, the socket's send)."""
+    loop_cpu_s: float = 0.0
+    """All the CPU seconds of the dashboard's thread so far (as of the last state tick): the
+    parts above plus HTTP, WebSocket reads and the event loop itself."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
