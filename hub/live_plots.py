@@ -5,8 +5,10 @@ For every stream the service keeps the last `window_s` of every channel as min/m
 bucket (at least 2 ms, at least one sample period), in ring buffers filled from the batch feed
 in numpy (a batch becomes a `reduceat` per bucket boundary: no per-sample Python). A one-off
 frame (`frame`, the HTTP API) merges the buckets that fall in each pixel column; a live plot
-(`follow`, the WebSocket) keeps its columns on a fixed time grid and recomputes only those new
-data touched. Memory per stream: 2 x channels x window_s / bucket_s float64.
+(`follow`, the WebSocket) keeps its columns on a fixed time grid, recomputes only those new
+data touched (in one compiled loop, `hub.plot_kernels`) and hands a client only the columns
+that changed since the frame it last got (`PlotFollower.delta`). Memory per stream: 2 x
+channels x window_s / bucket_s float64.
 """
 
 from __future__ import annotations
@@ -202,8 +204,7 @@ class LivePlots:
         span_s: float,
         end_ns: int | None = None,
     ) -> Frame:
-        """`frame` as numpy columns (NaN where no sample fell): what the dashboard's WebSocket
-        sends as float32, without a Python object per value."""
+        """`frame` as numpy columns (NaN where no sample fell)."""
         ring, cols = self._checked(stream, channels, width, span_s)
         with self._lock:
             end = end_ns if end_ns is not None else ring.latest_ns
