@@ -283,6 +283,12 @@ def test_a_port_held_by_another_program_is_refused_too(make_web: MakeWeb):
 # --- the WebSocket ----------------------------------------------------------------------------
 
 
+SURGE_PLOT = json.dumps(
+    {"type": "plots", "plots": [
+        {"id": "a", "stream": "wec/t8", "channels": ["surge"], "width": 50, "span_s": 1}]}
+)  # fmt: skip
+
+
 async def _receive(
     ws: aiohttp.ClientWebSocketResponse,
     kind: str,
@@ -316,11 +322,7 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
             s.ws_connect(f"http://127.0.0.1:{web.port}/api/live") as ws,
         ):
             (state,) = await _receive(ws, "state")
-            await ws.send_str(
-                json.dumps({"type": "plots", "plots": [
-                    {"id": "a", "stream": "wec/t8", "channels": ["surge"], "width": 50,
-                     "span_s": 1}]})
-            )  # fmt: skip
+            await ws.send_str(SURGE_PLOT)
             plot = frames.Assembler()
             (frame,) = await _receive(ws, "frame", plot=plot)
             web.feed_batches(3)  # newer data: more frames, one per batch
@@ -328,11 +330,7 @@ def test_the_live_socket_pushes_state_events_and_the_plots_asked_for(make_web: M
             while again["latest_ns"] < web.plots.streams()["wec/t8"]["latest_ns"]:
                 (again,) = await _receive(ws, "frame", plot=plot)
             async with s.ws_connect(f"http://127.0.0.1:{web.port}/api/live") as fresh:
-                await fresh.send_str(
-                    json.dumps({"type": "plots", "plots": [
-                        {"id": "a", "stream": "wec/t8", "channels": ["surge"], "width": 50,
-                         "span_s": 1}]})
-                )  # fmt: skip
+                await fresh.send_str(SURGE_PLOT)
                 whole = frames.Assembler()
                 await _receive(fresh, "frame", plot=whole)
             await ws.send_str("{bad")
