@@ -40,7 +40,7 @@ from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
 from edge.systemd import Systemd
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
-from edge.wire import decode_u64
+from edge.wire import decode_mark
 from edge.zenoh_session import client_config
 
 log = logging.getLogger("fleetdaq.edge")
@@ -192,16 +192,23 @@ class EdgeAgent:
         def on_ack(sample: Any) -> None:
             key = self.keys.parse(str(sample.key_expr))
             loop = by_stream.get(key.name) if key is not None else None
-            seq = decode_u64(sample.payload.to_bytes())
-            if loop is None or seq is None:
+            mark = decode_mark(sample.payload.to_bytes())
+            if loop is None or mark is None:
                 return
-            if not loop.spool.ack(seq):
+            seq, epoch = mark
+            if not loop.spool.ack(seq, epoch):
+                why = (
+                    f"it is for another spool's numbering (epoch {epoch}, this spool's is "
+                    f"{loop.spool.epoch}: one this spool replaced)"
+                    if epoch is not None and epoch != loop.spool.epoch
+                    else f"only {loop.spool.next_sequence - 1} was sent"
+                )
                 loop.events.emit(
                     logging.ERROR,
                     loop.name,
                     "ack_refused",
-                    f"ignored an ack for sequence {seq}: only {loop.spool.next_sequence - 1} "
-                    "was sent (a confused or forged ack must not delete unsent data)",
+                    f"ignored an ack for sequence {seq}: {why} (a confused or forged ack must "
+                    "not delete unsent data)",
                     sequence=seq,
                     sent=loop.spool.next_sequence - 1,
                 )

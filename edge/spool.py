@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import struct
 import threading
 from collections.abc import Iterator
@@ -32,6 +33,7 @@ _HEADER = struct.Struct("<IQqII")  # magic, sequence, first-sample time ns, leng
 HEADER_SIZE = _HEADER.size
 _ACKED = "acked"
 _CLEAN = "clean"
+_EPOCH = "epoch"
 
 
 @dataclass(slots=True)
@@ -99,6 +101,9 @@ class StreamSpool:
             self.acked + 1,
             (self.recovery.last_seq + 1) if self.recovery.last_seq is not None else 0,
         )
+        self.epoch = self._open_epoch()
+        """Drawn when the numbering starts at 0 (a new or wiped spool), kept on disk after:
+        the hub tells a spool that starts again from replays of one it already has."""
         self._write_marker(clean=False)
 
     # --- opening -----------------------------------------------------------------------------
@@ -108,6 +113,22 @@ class StreamSpool:
             return int((self.dir / _ACKED).read_text().strip())
         except (FileNotFoundError, ValueError):
             return -1
+
+    def _open_epoch(self) -> int:
+        path = self.dir / _EPOCH
+        if self.next_sequence > 0:  # numbering goes on: so does the epoch
+            try:
+                return int(path.read_text().strip())
+            except (FileNotFoundError, ValueError):
+                pass  # a spool from before epochs, or a damaged file: a new one is safe
+        epoch = secrets.randbits(63) + 1
+        tmp = self.dir / (_EPOCH + ".tmp")
+        with tmp.open("w") as fh:
+            fh.write(str(epoch))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        return epoch
 
     def _scan(self) -> Recovery:
         clean = (self.dir / _CLEAN).exists()
@@ -215,14 +236,16 @@ class StreamSpool:
 
     # --- acks and replay ------------------------------------------------------------------------
 
-    def ack(self, seq: int) -> bool:
+    def ack(self, seq: int, epoch: int | None = None) -> bool:
         """The hub has durably recorded every batch up to `seq`: delete what it covers.
 
         Returns False, changing nothing, for an ack of a sequence this spool has not appended
-        yet: a confused or forged ack must never delete data the hub cannot have received.
+        yet, or of another spool's numbering (`epoch`, when the hub says it: an ack meant for
+        the spool this one replaced): a confused or forged ack must never delete data the hub
+        cannot have received.
         """
         with self._lock:
-            if seq >= self.next_sequence:
+            if seq >= self.next_sequence or (epoch is not None and epoch != self.epoch):
                 self.acks_refused += 1
                 return False
             if seq <= self.acked:

@@ -29,7 +29,7 @@ from edge.keys import SiteKeys
 from edge.spool import StreamSpool
 from edge.systemd import Beat
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
-from edge.wire import BatchEncoder, encode_u64
+from edge.wire import BatchEncoder, encode_mark
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -237,7 +237,7 @@ class StreamLoop:
                 )
             pub = self._pub
             if pub is not None:
-                pub.put(payload, attachment=encode_u64(self.spool.floor))
+                pub.put(payload, attachment=encode_mark(self.spool.floor, self.spool.epoch))
             index += scans
             c.next_sequence = seq + 1
             c.batches += 1
@@ -321,7 +321,9 @@ class StreamLoop:
                     break
             if self._stop.is_set() or not self._hub_listens():
                 break
-            self._replay_pub.put(payload, attachment=encode_u64(self.spool.floor))
+            self._replay_pub.put(
+                payload, attachment=encode_mark(self.spool.floor, self.spool.epoch)
+            )
             sent += len(payload)
             batches += 1
             self.counters.replayed += 1

@@ -40,6 +40,32 @@ def decode_u64(raw: bytes | None) -> int | None:
     return int(_U64.unpack(raw)[0])
 
 
+_MARK = struct.Struct("<QQ")
+
+
+def encode_mark(sequence: int, epoch: int) -> bytes:
+    """An ack or a data put's `floor`, with the spool's epoch: two little-endian uint64.
+
+    The epoch is a random number a spool draws when its numbering starts (a new or wiped
+    spool starts again at sequence 0): the hub sees a new epoch and counts the stream afresh
+    instead of taking its batches for replays of what it already has, and an edge ignores
+    an ack for another epoch's sequences."""
+    return _MARK.pack(sequence, epoch)
+
+
+def decode_mark(raw: bytes | None) -> tuple[int, int | None] | None:
+    """(sequence, epoch) of `encode_mark`, or (sequence, None) from a peer that sends the
+    sequence alone (`encode_u64`, before epochs); None when it is neither."""
+    if raw is None:
+        return None
+    if len(raw) == 16:
+        seq, epoch = _MARK.unpack(raw)
+        return int(seq), int(epoch)
+    if len(raw) == 8:
+        return int(_U64.unpack(raw)[0]), None
+    return None
+
+
 # --- The message (its definition ships in edge/fleetdaq_msgs/msg/SampleBatch.msg) ---------------
 
 CLOCK_QUALITY_TYPE: Final = "fleetdaq_msgs/msg/ClockQuality"

@@ -37,7 +37,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import EVENT_TYPE, Event
 from edge.systemd import Beat
-from edge.wire import BatchDecoder, decode_u64, encode_u64, plausible_time
+from edge.wire import BatchDecoder, decode_mark, encode_mark, encode_u64, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.read_model import ReadModel, RecorderView
@@ -168,10 +168,10 @@ class Recorder:
                 st.overflow += 1
                 return
             att = sample.attachment
-            floor = decode_u64(att.to_bytes()) if att is not None else None
+            mark = decode_mark(att.to_bytes()) if att is not None else None
             payload = sample.payload.to_bytes()
             st.queued_bytes += len(payload)
-            put((_DATA, st, payload, time.time_ns(), floor))
+            put((_DATA, st, payload, time.time_ns(), mark))
 
         # One hub: every node's data (keys of unknown nodes refused and counted). Partitioned:
         # each of its own nodes', or the other hubs' batches would cross the mesh to it.
@@ -302,9 +302,9 @@ class Recorder:
         try:
             kind = item[0]
             if kind == _DATA:
-                _, st, payload, recv_ns, floor = item
+                _, st, payload, recv_ns, mark = item
                 st.queued_bytes -= len(payload)
-                self._record(st, payload, recv_ns, floor)
+                self._record(st, payload, recv_ns, mark)
             elif kind == _EVENT:
                 self._record_event(*item[1:])
             elif kind == _DROPS:
@@ -459,9 +459,12 @@ class Recorder:
             d = self._decoders[(st.node, st.stream)] = BatchDecoder()
         return d
 
-    def _record(self, st: StreamStats, payload: bytes, recv_ns: int, floor: int | None) -> None:
+    def _record(
+        self, st: StreamStats, payload: bytes, recv_ns: int, mark: tuple[int, int | None] | None
+    ) -> None:
         assert self.session is not None
         node, stream = st.node, st.stream
+        floor, epoch = mark if mark is not None else (None, None)
         try:
             h = self._decoder(st).read_header(payload, st.sample_format)
             if (h.node, h.stream) != (node, stream):
@@ -473,6 +476,8 @@ class Recorder:
         except WireError as err:
             self._malformed(st, err)
             return
+        if epoch is not None and epoch != st.epoch:
+            self._spool_restarted(st, epoch, h.sequence)
         if st.contiguous is None and floor is None and h.sequence != 0:
             self.bus.emit(
                 logging.WARNING,
@@ -538,6 +543,31 @@ class Recorder:
                 gap_s=round(gap, 6),
             )
 
+    def _spool_restarted(self, st: StreamStats, epoch: int, seq: int) -> None:
+        """A batch of a spool numbering this hub has not seen. The first of a stream: noted.
+        After another one (the edge's spool was wiped or replaced, so its sequences start
+        again at 0): the stream is counted afresh, or every batch would pass for a replay of
+        one already recorded, go unrecorded, and in time be acked and deleted at the edge."""
+        if st.contiguous is None and st.epoch is None:
+            st.epoch = epoch
+            return
+        lost = st.restart(epoch)
+        if st.spool_restarts <= 10 or st.spool_restarts % 1000 == 0:  # two edges, one name
+            self.bus.emit(
+                logging.WARNING,
+                "recorder",
+                "spool_restarted",
+                f"{st.node}/{st.stream}: the edge's spool numbers its batches afresh (now at "
+                f"sequence {seq}: a new or wiped spool); counted from here"
+                + (f", {lost} batch(es) it still owed are lost" if lost else "")
+                + f" ({st.spool_restarts} time(s) so far)",
+                node=st.node,
+                stream=st.stream,
+                sequence=seq,
+                lost=lost,
+                restarts=st.spool_restarts,
+            )
+
     def _dropped_by_edge(self, st: StreamStats, first: int, last: int) -> None:
         newly_lost = st.dropped_by_edge(first, last)
         if newly_lost:
@@ -594,7 +624,12 @@ class Recorder:
         for st in self.streams.values():
             st.durable = st.contiguous
             if st.durable is not None and st.durable >= 0 and st.durable != st.acked_sent:
-                put(self.keys.ack(st.node, st.stream), encode_u64(st.durable))
+                ack = (
+                    encode_mark(st.durable, st.epoch)
+                    if st.epoch is not None
+                    else encode_u64(st.durable)
+                )
+                put(self.keys.ack(st.node, st.stream), ack)
                 st.acked_sent = st.durable
 
     def _publish_view(self, force: bool = False, state: str | None = None) -> None:

@@ -66,6 +66,10 @@ class StreamStats:
     counted_lost: list[tuple[int, int]] = field(default_factory=list)
     """Sequences below `first_sequence` counted lost from the edge's reports (disjoint,
     inclusive intervals)."""
+    epoch: int | None = None
+    """The edge spool's numbering these sequences belong to (None: an edge that does not say)."""
+    spool_restarts: int = 0
+    """Times the edge's spool started its numbering again (a new or wiped spool)."""
     _next_t: float | None = None
     _in_order: bool = False
     _recent: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=64))
@@ -161,6 +165,23 @@ class StreamStats:
             self._next_t = t0 + scans * period_ns
         return gap
 
+    def restart(self, epoch: int) -> int:
+        """The edge's spool numbers from 0 again (`epoch` is its new numbering): what this hub
+        knows of the old numbering says nothing of the new one, so the sequence accounting
+        starts afresh (the counters go on). Holes of the old numbering still open can never
+        be filled now: counted lost, and returned."""
+        lost = self.missing
+        self.lost += lost
+        self.epoch = epoch
+        self.spool_restarts += 1
+        self.first_sequence = self.last_sequence = None
+        self.contiguous = self.durable = self.acked_sent = None
+        self.pending = set()
+        self.reported_drops = []
+        self.counted_lost = []
+        self._in_order = False
+        return lost
+
     def rollback(self) -> None:
         """What was written since the last durable flush may be lost: expect it again."""
         self.contiguous = self.durable
@@ -221,6 +242,7 @@ class StreamStats:
             "first_sequence": self.first_sequence,
             "last_sequence": self.last_sequence,
             "acked": self.durable,
+            "spool_restarts": self.spool_restarts,
         }
 
 

@@ -17,6 +17,7 @@ import logging
 import queue
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import threading
@@ -595,3 +596,46 @@ def test_an_edge_without_any_hub_still_stops_cleanly_and_quickly(rig: Rig):
     first_ns = min(t_ns for _, t_ns in spooled(rig.spool_dir()))
     assert (first_ns - opened_ns) / 1e9 < 2.0
     assert len(rig.spooled()) >= 20, "what it acquired meanwhile is in the spool"
+
+
+def test_a_wiped_edge_spool_numbers_again_from_0_and_the_hub_records_it_all(rig: Rig):
+    """A new SD card, or a spool deleted by hand, while the hub runs on: the edge numbers its
+    batches from 0 again. They are new batches, not replays of the ones the hub has: every
+    one is recorded and only then acked (before spool epochs the hub took them for
+    duplicates, recorded none, and in time acked them away)."""
+    from edge.spool import StreamSpool
+
+    hub = rig.hub()
+    edge = rig.edge("edge1")
+    wait_until(lambda: rig.acked() >= 30, 60, "acks of the first spool")
+    assert edge.terminate() == 0
+    wiped_ns = time.time_ns()
+    shutil.rmtree(rig.spool_dir())
+    edge2 = rig.edge("edge2")
+    wait_until(lambda: rig.acked() >= 40, 60, "acks of the new spool")
+    wait_until(rig.caught_up, 30, "the hub to catch up with the new spool")
+    assert edge2.terminate() == 0
+    assert hub.terminate() == 0
+    sp = StreamSpool(rig.spool_dir(), 10**12, 10**9)
+    try:
+        new_top = sp.next_sequence - 1
+    finally:
+        sp.close()
+    before: list[int] = []
+    after: list[int] = []
+    with AnyReader(sorted(rig.data.glob("*/*.mcap"))) as reader:
+        conns = [c for c in reader.connections if c.topic == "/wec/t8"]
+        for c, t_ns, raw in reader.messages(conns):
+            seq = reader.deserialize(raw, c.msgtype).sequence
+            (after if t_ns > wiped_ns else before).append(seq)
+    top, missing = _complete(before)
+    assert top >= 30
+    assert missing == []
+    spooled = rig.spooled()  # the last few, recorded or not: sent again on the next contact
+    assert sorted(set(after + spooled)) == list(range(new_top + 1)), "the new spool, all of it"
+    assert len(after) == len(set(after)), "each recorded once"
+    assert len(spooled) <= 40
+    s = rig.summary(1)["streams"]["wec/t8"]  # type: ignore[index]
+    assert s["spool_restarts"] == 1, s
+    assert s["duplicates"] == 0, s
+    assert ("hub", "spool_restarted") in [(node, tag) for node, tag, _ in rig.events()]

@@ -157,3 +157,20 @@ def test_decoded_payload_from_file_equals_what_was_written(tmp_path: Path):
         got = [m.data for _, _, m in make_reader(fh).iter_messages()]
     assert got == payloads
     assert decode_batch(got[2]).header.sequence == 2
+
+
+def test_a_restarted_spool_numbering_is_counted_afresh_and_its_open_holes_lost():
+    st = StreamStats("wec", "t8", True, epoch=7)
+    for seq in [0, 1, 2, 4, 5]:
+        assert st.offer(seq, floor=0)[0]
+    assert st.missing == 1  # 3
+    assert st.restart(8) == 1, "the old spool's hole can never be filled now"
+    assert st.lost == 1
+    assert st.epoch == 8
+    assert st.spool_restarts == 1
+    for seq in [0, 1, 2]:  # the new spool's batches are new, not replays of the old ones
+        is_new, lost = st.offer(seq, floor=0)
+        assert is_new
+        assert lost == 0
+    assert st.contiguous == 2
+    assert st.duplicates == 0

@@ -163,3 +163,36 @@ def test_age_drops_say_exactly_what_and_why(tmp_path: Path):
     # Segments go whole: the oldest one kept still has its newest batch within the limit.
     assert T0 + 99 * SEC // 10 - (T0 + kept[4] * SEC // 10) <= 5 * SEC
     sp.close()
+
+
+def test_a_spool_keeps_its_epoch_and_a_new_or_wiped_one_draws_another(tmp_path: Path):
+    sp = StreamSpool(tmp_path / "s", 10**9, 3600)
+    first = sp.epoch
+    assert first > 0
+    _fill(sp, 0, 5)
+    sp.close()
+    again = StreamSpool(tmp_path / "s", 10**9, 3600)
+    assert again.epoch == first, "the numbering goes on: so does the epoch"
+    assert again.ack(2, first)
+    assert not again.ack(4, first + 1), "an ack for another spool's numbering"
+    assert again.acked == 2
+    assert again.acks_refused == 1
+    again.close()
+    for p in (tmp_path / "s").iterdir():  # wiped: numbering starts at 0 again
+        p.unlink()
+    wiped = StreamSpool(tmp_path / "s", 10**9, 3600)
+    assert wiped.next_sequence == 0
+    assert wiped.epoch != first
+    wiped.close()
+    # A spool written before epochs (no epoch file) goes on numbering under a new one.
+    old = StreamSpool(tmp_path / "old", 10**9, 3600)
+    _fill(old, 0, 3)
+    old.close()
+    (tmp_path / "old" / "epoch").unlink()
+    reopened = StreamSpool(tmp_path / "old", 10**9, 3600)
+    assert reopened.next_sequence == 3
+    assert reopened.epoch > 0
+    reopened.close()
+    last = StreamSpool(tmp_path / "old", 10**9, 3600)
+    assert last.epoch == reopened.epoch
+    last.close()

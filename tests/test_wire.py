@@ -314,3 +314,12 @@ def test_mangled_payloads_are_refused_exactly_when_an_independent_decoder_says_s
         status = b"" if ours.status is None else ours.status.tobytes()
         assert status == bytes(theirs.sample_status)
     assert min(outcomes.values()) > 300, outcomes  # both outcomes were exercised
+
+
+def test_acks_and_floors_carry_the_spool_epoch_and_old_peers_still_read():
+    from edge.wire import decode_mark, encode_mark, encode_u64
+
+    assert decode_mark(encode_mark(41, 2**63 + 5)) == (41, 2**63 + 5)
+    assert decode_mark(encode_u64(41)) == (41, None), "an edge or hub from before epochs"
+    for bad in (None, b"", b"\x00" * 7, b"\x00" * 12, b"\x00" * 17):
+        assert decode_mark(bad) is None
