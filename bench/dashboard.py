@@ -155,12 +155,14 @@ def browsers(url: str, control: Path) -> None:
         for page, (f0, d0) in zip(pages, start, strict=True):
             got = page.evaluate(
                 "() => [window.fleetdaq.stats.delays, window.fleetdaq.stats.frames, "
-                "window.fleetdaq.stats.drawn, window.fleetdaq.stats.dropped_by_hub]"
+                "window.fleetdaq.stats.drawn, window.fleetdaq.stats.dropped_by_hub, "
+                "window.fleetdaq.stats.resyncs]"
             )
             out["delays_ms"] += got[0]
             out["fps"].append((got[1] - f0) / elapsed)
             out["drawn_per_s"].append((got[2] - d0) / elapsed)
             out["dropped_by_hub"] = got[3]
+            out["resyncs"] = out.get("resyncs", 0) + got[4]
         stop.set()
         scraper.join(5)
         out["scrapes"] = scrapes
@@ -290,6 +292,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         "frames_per_s_per_browser": [round(x, 2) for x in browsers_out["fps"]],
         "drawn_per_s_per_browser": [round(x, 2) for x in browsers_out["drawn_per_s"]],
         "dropped_by_hub": browsers_out.get("dropped_by_hub"),
+        "delta_resyncs": browsers_out.get("resyncs"),
         "dashboard_cpu_pct_by_part": browsers_out["dashboard_cpu_pct"],
         "metrics_scrapes": browsers_out["scrapes"],
         "window_s": window,

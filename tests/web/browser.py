@@ -146,6 +146,9 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         t0, d0 = time.monotonic(), page.evaluate("() => window.fleetdaq.stats.drawn")
         page.wait_for_function(f"() => window.fleetdaq.stats.drawn >= {d0 + 30}")
         result["plot_fps"] = 30 / (time.monotonic() - t0)
+        result["plot_frames"] = page.evaluate(
+            "() => [window.fleetdaq.stats.frames, window.fleetdaq.stats.resyncs]"
+        )
         result["plots"] = page.evaluate(
             "() => Array.from(document.querySelectorAll('canvas'))"
             ".map((c) => c.getAttribute('aria-label'))"

@@ -161,6 +161,10 @@ def test_values_and_plots_change_live(tour: Tour):
     ]  # fmt: skip
     # Drawn at the stream's pace (100 ms batches, ~10 frames/s), not at the 2 Hz state pace.
     assert r["plot_fps"] > 5, r["plot_fps"]
+    # A whole frame, then deltas, each applied to the one before: none had to be asked again.
+    frames, resyncs = r["plot_frames"]
+    assert frames >= 30
+    assert resyncs == 0
 
 
 def test_an_alarm_is_acked_through_the_page_and_its_audit_names_the_user(tour: Tour):
