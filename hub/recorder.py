@@ -608,6 +608,15 @@ class Recorder:
         self._last_flush = time.monotonic()
         if not self._writable():
             return
+        if self._recovering() and self.session.current_file is None and self._held:
+            # No batch has come to open a file since the error (every edge may be down): the
+            # oldest held event opens one, so this flush tells whether writing works again
+            # and the events raised meanwhile are not kept in memory until a batch comes.
+            item = self._held[0]
+            if self.recording:
+                if not self._guarded("writing", self.session.write, *item):
+                    return  # refused again: still held, retried in 2 s
+                self._unflushed.append(self._held.pop(0))
         if self.session.due_split(time.time_ns()):
             if not self._guarded("closing a file", self.session.split):
                 return

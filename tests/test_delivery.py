@@ -639,3 +639,33 @@ def test_a_wiped_edge_spool_numbers_again_from_0_and_the_hub_records_it_all(rig:
     assert s["spool_restarts"] == 1, s
     assert s["duplicates"] == 0, s
     assert ("hub", "spool_restarted") in [(node, tag) for node, tag, _ in rig.events()]
+
+
+@pytest.mark.parametrize("rig", [600], indirect=True)
+def test_after_a_full_disk_the_held_events_are_written_even_with_every_edge_down(
+    rig: Rig, full_disk: FullDisk
+):
+    """The disk fills, the only edge stops, the space returns: no batch comes to open a file,
+    yet writing resumes and the events raised meanwhile go into the recording."""
+    hub = rig.hub(relay_output=True)
+    edge = rig.edge()
+    wait_until(lambda: rig.acked() >= 20, 60, "acks")
+    full_disk.fill(hub)
+    rig.client.wait(lambda s: s["recorder"]["write_errors"] >= 1, 30, "a refused write")
+    assert edge.terminate() == 0  # its events come to the hub, which cannot write them
+    full_disk.free(hub)
+    log = rig.data / "events.log"
+    wait_until(lambda: log.exists() and "write_resumed" in log.read_text(), 60, "writing to resume")
+    assert hub.terminate() == 0
+    # The file open when the disk filled was abandoned; what it holds is recoverable.
+    reports = verify_path(sessions(rig.data)[0], recover=True)
+    assert {r.status for r in reports} <= {"ok", "recovered"}, [r.line() for r in reports]
+    tags = [tag for _, _, tag, _ in rig.timed_events()]
+    assert "disk_full" in tags
+    assert "write_resumed" in tags
+    assert ("wec", "stopped") in [(node, tag) for node, tag, _ in rig.events()], (
+        "held, then written"
+    )
+    raised = rig.summary(1)["events"]
+    recorded = Counter(level for level, *_ in rig.leveled_events())
+    assert recorded == Counter(raised)  # type: ignore[arg-type]
