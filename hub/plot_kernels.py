@@ -4,7 +4,7 @@ by numba (`hub.jit`; numpy without it, same results: tests/test_live_plots.py ch
 Each batch of a 40 kS/s stream adds ~50 buckets of min/max to the stream's ring; a plot of 4
 channels over 10 s in 1400 pixel columns folds them into the ~14 columns they fall in. numpy
 does that in about twenty small calls (fill, index, reduceat, transpose, put: ~150 µs, most of
-it the calls, not the data); the compiled loop does it in one (~10 µs). A live plot then costs
+it the calls, not the data); the compiled loop does it in one (~13 µs). A live plot then costs
 the hub its WebSocket, not its arithmetic.
 """
 
