@@ -13,10 +13,11 @@ under 10 % of what recording the same batch costs, so the hub uses numba when it
 (the ``hub`` extra) and numpy otherwise, with the same results (tests/test_alarm_core.py
 checks the two against each other).
 
-numba compiles the loop once (`hub.jit`) and caches it: beside this file where that is writable, else in
-the hub's data folder (``cache/numba``), so a hub whose package is read-only (systemd's
-ProtectSystem) compiles it once, not at every start. `warm_up` starts that at the hub's start
-in a thread of its own; until it is ready (about a second; less from the cache) numpy does it.
+numba compiles the loop once (`hub.jit`) and caches it: beside this file where that is
+writable, else in the hub's data folder (``cache/numba``), so a hub whose package is read-only
+(systemd's ProtectSystem) compiles it once, not at every start. `warm_up` starts that at the
+hub's start in a thread of its own; until it is ready (about a second; less from the cache)
+numpy does it.
 """
 
 from __future__ import annotations
