@@ -1,5 +1,12 @@
-"""Prometheus ``/metrics`` (served by the dashboard's web service), written by prometheus-client
-from one read-model snapshot per scrape: nothing is counted twice and no service is touched.
+"""Prometheus ``/metrics`` (served by the dashboard's web service): prometheus-client's metric
+families from one read-model snapshot per scrape, so nothing is counted twice and no service is
+touched.
+
+The text is written by `exposition`, not by prometheus-client's ``generate_latest``: for these
+families it writes the same bytes (a test compares them) in a fifth of the time. The library
+re-checks and re-escapes every sample's metric and label names, ~12 µs a sample, 0.8 ms a
+scrape of a small site; here the names are the constants below, checked once by the families'
+constructors, and only label values (node and stream names) are escaped.
 
 Names follow Prometheus' conventions: ``fleetdaq_`` prefix, base units (seconds, bytes,
 ratios 0..1), ``_total`` on counters, ``node`` / ``stream`` / ``severity`` labels. A counter of
@@ -12,7 +19,7 @@ from __future__ import annotations
 import math
 import platform
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from prometheus_client import CollectorRegistry, generate_latest
@@ -23,6 +30,7 @@ from prometheus_client.core import (
     Metric,
 )
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from prometheus_client.utils import floatToGoString
 
 from edge import __version__
 from edge.messages import NodeHealth
@@ -34,14 +42,53 @@ RECORDER_STATES = ("recording", "stopped", "disk_error", "failed", "starting")
 
 def render_metrics(view: HubView) -> tuple[bytes, str]:
     """The exposition text of `view`, and its content type."""
+    return exposition(ViewCollector(view).collect()), CONTENT_TYPE_LATEST
+
+
+def reference_metrics(view: HubView, now: float) -> bytes:
+    """What prometheus-client's own ``generate_latest`` writes for `view` taken at `now`: the
+    bytes `exposition` must equal (for tests)."""
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(_ViewCollector(view))
-    return generate_latest(registry), CONTENT_TYPE_LATEST
+    registry.register(ViewCollector(view, now))
+    return generate_latest(registry)
 
 
-class _ViewCollector:
-    def __init__(self, view: HubView) -> None:
+_number: Callable[[float], str] = floatToGoString
+"""prometheus-client's own writing of a value (Go's float format: +Inf, NaN, 1.5e+06)."""
+
+_KINDS = {"counter": ("_total", "counter"), "gauge": ("", "gauge"), "info": ("_info", "gauge")}
+
+
+def exposition(metrics: Iterable[Metric]) -> bytes:
+    """Prometheus' text format (0.0.4) of counter, gauge and info families whose metric and
+    label names are valid as they are; byte for byte what ``generate_latest`` writes for them."""
+    out: list[str] = []
+    for m in metrics:
+        suffix, kind = _KINDS[m.type]  # another kind: a KeyError, never a wrong exposition
+        name = m.name + suffix
+        doc = m.documentation.replace("\\", r"\\").replace("\n", r"\n")
+        out.append(f"# HELP {name} {doc}\n# TYPE {name} {kind}\n")
+        for s in m.samples:
+            if s.name != name or s.timestamp is not None:
+                raise ValueError(f"{s.name}: a sample this exposition does not write")
+            if s.labels:
+                labels = ",".join(f'{k}="{_label_value(v)}"' for k, v in sorted(s.labels.items()))
+                out.append(f"{name}{{{labels}}} {_number(s.value)}\n")
+            else:
+                out.append(f"{name} {_number(s.value)}\n")
+    return "".join(out).encode()
+
+
+def _label_value(v: str) -> str:
+    return v.replace("\\", r"\\").replace("\n", r"\n").replace('"', r"\"")
+
+
+class ViewCollector:
+    """The metric families of one view (`now`: the scrape's time, default the clock's)."""
+
+    def __init__(self, view: HubView, now: float | None = None) -> None:
         self.view = view
+        self.now = time.time() if now is None else now
 
     def collect(self) -> Iterator[Metric]:
         yield from _build(self.view)
@@ -49,7 +96,7 @@ class _ViewCollector:
         yield from _nodes(self.view)
         yield from _alarms(self.view)
         yield from _recorder(self.view)
-        yield from _hub(self.view)
+        yield from _hub(self.view, self.now)
 
 
 def _build(view: HubView) -> Iterator[Metric]:
@@ -264,7 +311,7 @@ def _recorder(view: HubView) -> Iterator[Metric]:
         )
 
 
-def _hub(view: HubView) -> Iterator[Metric]:
+def _hub(view: HubView, now: float) -> Iterator[Metric]:
     n = view.notifier
     if n:
         yield GaugeMetricFamily(
@@ -310,7 +357,7 @@ def _hub(view: HubView) -> Iterator[Metric]:
         failed.add_metric([name], 1.0)
     yield failed
     yield GaugeMetricFamily(
-        "fleetdaq_hub_scrape_time_seconds", "When this was taken (Unix time).", time.time()
+        "fleetdaq_hub_scrape_time_seconds", "When this was taken (Unix time).", now
     )
 
 

@@ -3,6 +3,7 @@ the names and labels a scraper sees and their values, against the view they came
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -10,6 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    InfoMetricFamily,
+    Metric,
+    SummaryMetricFamily,
+)
 from prometheus_client.parser import text_string_to_metric_families
 
 from edge import __version__
@@ -17,7 +26,7 @@ from edge.config.load import parse_config
 from edge.keys import SiteKeys
 from edge.wire import BatchEncoder, encode_u64
 from edge.zenoh_session import client_config
-from hub.metrics import render_metrics
+from hub.metrics import ViewCollector, exposition, reference_metrics, render_metrics
 from hub.runtime import HubRuntime
 from ptp.quality import UNSYNCED
 from tests.procs import free_port, wait_until
@@ -76,6 +85,10 @@ def test_metrics_say_what_the_view_says(hub: tuple[HubRuntime, int]):
         )
         view = runtime.snapshot()
         body, content_type = render_metrics(view)
+        now = time.time()
+        assert exposition(ViewCollector(view, now).collect()) == reference_metrics(view, now), (
+            "the exposition differs from prometheus-client's own"
+        )
     finally:
         pub.undeclare()
         session.close()
@@ -102,3 +115,32 @@ def test_metrics_say_what_the_view_says(hub: tuple[HubRuntime, int]):
     assert m[("fleetdaq_snapshot_buffer_bytes", ())] > 0
     names = {name for name, _ in m}
     assert all(n.startswith("fleetdaq_") for n in names)
+
+
+def test_the_exposition_writes_what_prometheus_client_writes_even_for_awkward_values():
+    odd = ['quote " here', "back\\slash", "new\nline", "ünïcode", ""]
+    values = [0.0, -0.0, 1.0, 1e6, 1234567.0, 1e-9, 2.5e21, math.inf, -math.inf, math.nan, 7]
+
+    def families() -> list[Metric]:
+        c = CounterMetricFamily("x_events", 'Help with "quotes", \\ and\na newline.',
+                                labels=["node", "kind"])  # fmt: skip
+        g = GaugeMetricFamily("x_level", "Levels.", labels=["node"])
+        for i, v in enumerate(values):
+            c.add_metric([odd[i % len(odd)], str(i)], v if math.isnan(v) else abs(v))
+            g.add_metric([odd[i % len(odd)] + str(i)], v)
+        info = InfoMetricFamily("x_build", "Build.")
+        info.add_metric([], {"version": 'v"1"\\', "python": "3.11"})
+        return [c, g, info, GaugeMetricFamily("x_plain", "No labels.", 42.0)]
+
+    class Families:
+        def collect(self) -> list[Metric]:
+            return families()
+
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(Families())
+    ours = exposition(families())
+    assert ours == generate_latest(registry)
+    parsed = {f.name: f for f in text_string_to_metric_families(ours.decode())}
+    assert {s.labels["node"] for s in parsed["x_events"].samples} >= set(odd) - {""}
+    with pytest.raises(KeyError):  # a kind it does not write is refused, not written wrong
+        exposition([SummaryMetricFamily("x_summary", "S.", count_value=1, sum_value=2.0)])
