@@ -3,10 +3,10 @@ families from one read-model snapshot per scrape, so nothing is counted twice an
 touched.
 
 The text is written by `exposition`, not by prometheus-client's ``generate_latest``: for these
-families it writes the same bytes (a test compares them) in a fifth of the time. The library
-re-checks and re-escapes every sample's metric and label names, ~12 µs a sample, 0.8 ms a
-scrape of a small site; here the names are the constants below, checked once by the families'
-constructors, and only label values (node and stream names) are escaped.
+families it writes the same bytes (a test compares them) in a third of the time (~0.15 ms
+instead of ~0.4 ms for a small site's 66 samples): the library re-checks and re-escapes every
+sample's metric and label names; here the names are the constants below, checked once by the
+families' constructors, and only label values (node and stream names) are escaped.
 
 Names follow Prometheus' conventions: ``fleetdaq_`` prefix, base units (seconds, bytes,
 ratios 0..1), ``_total`` on counters, ``node`` / ``stream`` / ``severity`` labels. A counter of
