@@ -37,9 +37,9 @@ STOP_TIMEOUT_S = 15.0
 
 
 def new_loop() -> asyncio.AbstractEventLoop:
-    """uvloop's loop (in the hub extra): its loop, transports and timers are C, and they cost
-    the hub about a fifth less CPU per dashboard client than asyncio's own (bench/dashboard.py);
-    asyncio's where uvloop is not installed."""
+    """uvloop's loop (in the hub extra): its loop, transports and timers are C, and the
+    dashboard's thread takes about a fifth less CPU on it than on asyncio's own
+    (bench/dashboard.py); asyncio's where uvloop is not installed."""
     try:
         import uvloop
     except ImportError:
