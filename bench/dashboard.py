@@ -19,7 +19,8 @@ Target: p99 at most 300 ms.
 
 Also printed, from the dashboard's own counters over the B window: the CPU of its parts (the
 frames, the state, /metrics, the WebSocket sends) and of its whole thread, and how much of the
-extra is that thread and how much the rest of the hub.
+extra is that thread and how much the rest of the hub; and, from /proc, the extra of every
+thread of the hub by its name (`extra_by_thread_pct`: the hub names its threads for the OS).
 
 Bounded: about 2 minutes. Progress on stderr; the last line on stdout is one JSON object with
 the figures, the targets and whether they are met.
@@ -93,11 +94,40 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def measure(pid: int, seconds: float) -> float:
-    """The process's CPU share of one core over `seconds` (the measurement itself)."""
-    c0, t0 = cpu_s(pid), time.monotonic()
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """utime + stime per thread name (the hub names its threads for the OS: "recorder",
+    "dashboard", ...; threads of one name are summed), seconds."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:  # ended meanwhile
+            continue
+        name = stat[stat.index("(") + 1 : stat.rindex(")")]
+        fields = stat.rsplit(")", 1)[1].split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12]))
+    return {k: v / os.sysconf("SC_CLK_TCK") for k, v in out.items()}
+
+
+def measure(pid: int, seconds: float) -> tuple[float, dict[str, float]]:
+    """The process's CPU share of one core over `seconds` (the measurement itself), and each
+    thread name's share."""
+    c0, th0, t0 = cpu_s(pid), thread_cpu_s(pid), time.monotonic()
     time.sleep(seconds)
-    return (cpu_s(pid) - c0) / (time.monotonic() - t0)
+    c1, th1, elapsed = cpu_s(pid), thread_cpu_s(pid), time.monotonic() - t0
+    return (c1 - c0) / elapsed, {k: (v - th0.get(k, 0.0)) / elapsed for k, v in th1.items()}
+
+
+def by_thread(a1: dict[str, float], b: dict[str, float], a2: dict[str, float]) -> dict[str, float]:
+    """B less the mean of the As per thread name, % of a core, largest first (those of at
+    least 0.05 %)."""
+    extra = {
+        k: 100 * (b.get(k, 0.0) - (a1.get(k, 0.0) + a2.get(k, 0.0)) / 2)
+        for k in set(a1) | set(b) | set(a2)
+    }
+    return {
+        k: round(v, 2) for k, v in sorted(extra.items(), key=lambda kv: -kv[1]) if abs(v) >= 0.05
+    }
 
 
 def percentile(xs: list[float], q: float) -> float:
@@ -251,7 +281,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         log(f"hub pid {hub.pid} and edge started; warming up {warmup:g} s")
         time.sleep(warmup)
         log(f"A1: hub without browsers, {window:g} s")
-        a1 = measure(hub.pid, window)
+        a1, a1_threads = measure(hub.pid, window)
         log(f"A1: {100 * a1:.1f} % of a core; starting two browsers and the /metrics scraper")
         driver = ns.start(
             [sys.executable, str(Path(__file__).resolve()), "--browsers",
@@ -266,7 +296,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         time.sleep(warmup)
         (control / "start").touch()
         log(f"B: hub with two browsers plotting and /metrics scraped, {window:g} s")
-        b = measure(hub.pid, window)
+        b, b_threads = measure(hub.pid, window)
         (control / "stop").touch()
         wait_for((control / "delays.json").exists, 60, "the browsers' figures")
         driver.wait(60)
@@ -274,7 +304,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         log(f"B: {100 * b:.1f} % of a core; browsers closed, settling {warmup:g} s")
         time.sleep(warmup)
         log(f"A2: hub without browsers again, {window:g} s")
-        a2 = measure(hub.pid, window)
+        a2, a2_threads = measure(hub.pid, window)
         log(f"A2: {100 * a2:.1f} % of a core")
     finally:
         ns.close()
@@ -292,6 +322,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         # machine (caches, memory bandwidth), not work the dashboard asks for.
         "extra_in_dashboard_thread_pct": loop,
         "extra_elsewhere_pct": round(100 * (b - base) - loop, 2),
+        "extra_by_thread_pct": by_thread(a1_threads, b_threads, a2_threads),
         "delay_ms_p50": round(statistics.median(delays), 1) if delays else None,
         "delay_ms_p99": round(percentile(delays, 0.99), 1) if delays else None,
         "delay_ms_max": round(max(delays), 1) if delays else None,

@@ -39,6 +39,7 @@ from edge.security import SecretFileError, TlsFiles, node_tls
 from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
 from edge.systemd import Systemd
+from edge.threads import NamedThread
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
 from edge.wire import decode_mark
 from edge.zenoh_session import client_config
@@ -87,11 +88,9 @@ class EdgeAgent:
         self.outputs: OutputService | None = None
         self.time_sync: TimeSyncMonitor = NoTimeSyncMonitor()
         self._stop = threading.Event()
-        self._health_thread = threading.Thread(target=self._health, name="health", daemon=True)
-        self._sync_thread = threading.Thread(
-            target=self._sync_spools, name="spool-sync", daemon=True
-        )
-        self._connector = threading.Thread(target=self._connect, name="connect", daemon=True)
+        self._health_thread = NamedThread(target=self._health, name="health", daemon=True)
+        self._sync_thread = NamedThread(target=self._sync_spools, name="spool-sync", daemon=True)
+        self._connector = NamedThread(target=self._connect, name="connect", daemon=True)
         self._session_lock = threading.Lock()
         self._started = False
         self._closed = False

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from edge.cdr import decode
 from edge.errors import WireError
 from edge.messages import HubHeartbeat
+from edge.threads import NamedThread
 
 
 class HubWatch:
@@ -47,7 +48,7 @@ class HubWatch:
         self.junk = 0
         self.last: HubHeartbeat | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="hub-watch", daemon=True)
+        self._thread = NamedThread(target=self._run, name="hub-watch", daemon=True)
 
     def start(self) -> None:
         self._thread.start()

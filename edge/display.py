@@ -24,6 +24,7 @@ from edge.drivers.i2cbus import load_smbus2, open_bus
 from edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from edge.drivers.table import DISPLAYS, load_sim
 from edge.errors import DriverError
+from edge.threads import NamedThread
 
 if TYPE_CHECKING:
     from edge.config.node import NodeConfig
@@ -62,7 +63,7 @@ class DisplayLoop:
         self._lcd: Hd44780Pcf8574 | None = None
         self._failing: str | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"display-{name}", daemon=True)
+        self._thread = NamedThread(target=self._run, name=f"display-{name}", daemon=True)
         self.refreshes = 0
         self.failures = 0
         self.refreshed = threading.Event()

@@ -39,6 +39,7 @@ from edge.output_channel import OutputChannel, Pulse
 from edge.output_commands import CommandDesk
 from edge.output_upkeep import Upkeep
 from edge.schema import NAME
+from edge.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -116,7 +117,7 @@ class OutputService:
         )
         self._queryable: Any = None
         self._beat_sub: Any = None
-        self._worker = threading.Thread(target=self._run, name="outputs", daemon=True)
+        self._worker = NamedThread(target=self._run, name="outputs", daemon=True)
         self._closing = False
         self.started = threading.Event()
         self.counts = {"queries": 0, "busy": 0, "stray": 0, "replies_failed": 0}

@@ -28,6 +28,7 @@ from edge.event_publisher import EventPublisher
 from edge.keys import SiteKeys
 from edge.spool import StreamSpool
 from edge.systemd import Beat
+from edge.threads import NamedThread
 from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
 from edge.wire import BatchEncoder, encode_mark
 
@@ -104,8 +105,8 @@ class StreamLoop:
         self.beat = Beat(f"acquisition of {name}")
         """Shows the loop is alive: the agent hands it to systemd's watchdog (`edge.systemd`)."""
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"stream-{name}", daemon=True)
-        self._replayer = threading.Thread(target=self._replay, name=f"replay-{name}", daemon=True)
+        self._thread = NamedThread(target=self._run, name=f"stream-{name}", daemon=True)
+        self._replayer = NamedThread(target=self._replay, name=f"replay-{name}", daemon=True)
         self._report_recovery()
 
     def _report_recovery(self) -> None:

@@ -23,6 +23,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from edge.threads import NamedThread
+
 log = logging.getLogger("fleetdaq.systemd")
 
 DEFAULT_STALL_S = 15.0
@@ -103,7 +105,7 @@ class Systemd:
     def ready(self, status: str) -> None:
         self.send("READY=1", f"STATUS={status}")
         if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="systemd", daemon=True)
+            self._thread = NamedThread(target=self._run, name="systemd", daemon=True)
             self._thread.start()
 
     def stopping(self, status: str = "stopping") -> None:

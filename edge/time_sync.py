@@ -19,6 +19,7 @@ from typing import Protocol
 
 from edge.config.node import ClockConfig, NodeConfig
 from edge.messages import TimeSyncStatus
+from edge.threads import NamedThread
 from ptp.checks import Thresholds, defaults_for
 from ptp.quality import UNSYNCED, ClockQuality
 from ptp.reader import ChronyReader, Ptp4lReader, Reader
@@ -122,7 +123,7 @@ class PollingTimeSyncMonitor:
         if self._thread is not None:
             return
         self.poll()  # the first batches already carry a real reading
-        self._thread = threading.Thread(target=self._run, name="clock-monitor", daemon=True)
+        self._thread = NamedThread(target=self._run, name="clock-monitor", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from edge.threads import NamedThread
 from edge.wire import BatchHeader
 
 log = logging.getLogger("fleetdaq.feed")
@@ -51,7 +52,7 @@ class FeedConsumer:
         self._missed = 0
         self._lock = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name=f"feed-{name}", daemon=True)
+        self._thread = NamedThread(target=self._run, name=f"feed-{name}", daemon=True)
 
     def offer(self, b: FedBatch) -> None:
         size = len(b.payload)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.messages import Event, make_event
+from edge.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.bus")
 
@@ -45,7 +46,7 @@ class Subscription:
         self.name = name
         self.handler = handler
         self._queue: queue.Queue[Any] = queue.Queue(maxsize)
-        self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
+        self._thread = NamedThread(target=self._run, name=f"bus-{name}", daemon=True)
         self.delivered = 0
         self.dropped = 0
         self.errors = 0

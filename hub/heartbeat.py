@@ -15,6 +15,7 @@ from edge import __version__
 from edge.cdr import encode
 from edge.keys import SiteKeys
 from edge.messages import HubHeartbeat
+from edge.threads import NamedThread
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.hub")
@@ -31,7 +32,7 @@ class Heartbeat:
         self.period_s = period_s
         self.beats = 0
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
+        self._thread = NamedThread(target=self._run, name="heartbeat", daemon=True)
         self._pub: Any = None
         self._died: str | None = None
 

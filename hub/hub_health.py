@@ -14,6 +14,7 @@ from edge.cdr import encode
 from edge.host_metrics import HostMetricsReader
 from edge.keys import HUB
 from edge.messages import NODE_HEALTH_TYPE, NodeHealth, TimeSyncStatus
+from edge.threads import NamedThread
 from hub.read_model import ReadModel
 from hub.recorder import Recorder
 from hub.session import health_topic
@@ -33,7 +34,7 @@ class HubHealth:
         self.host = HostMetricsReader({"data": data_dir})
         self.started_ns = time.time_ns()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="hub-health", daemon=True)
+        self._thread = NamedThread(target=self._run, name="hub-health", daemon=True)
         self._died: str | None = None
 
     def read(self) -> NodeHealth:

@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+from edge.threads import NamedThread
+
 T = TypeVar("T")
 
 log = logging.getLogger("fleetdaq.jit")
@@ -42,7 +44,7 @@ class Compiled(Generic[T]):
         seconds for it (None: as long as it takes). Only the first call starts a compile."""
         with self._lock:
             if self.thread is None:
-                self.thread = threading.Thread(
+                self.thread = NamedThread(
                     target=self._run, args=(cache_dir,), name=self.name, daemon=True
                 )
                 self.thread.start()

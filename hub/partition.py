@@ -45,6 +45,7 @@ from edge.keys import SiteKeys
 from edge.messages import Event
 from edge.paths import default_data_dir
 from edge.systemd import Systemd
+from edge.threads import NamedThread
 from hub.bus import EventBus
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
@@ -113,7 +114,7 @@ class PartitionReport:
         self._token: Any = None
         self._pubs: dict[str, Any] = {}
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="partition-report", daemon=True)
+        self._thread = NamedThread(target=self._run, name="partition-report", daemon=True)
         self._died: str | None = None
         self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=10_000)
 

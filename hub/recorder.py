@@ -37,6 +37,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import EVENT_TYPE, Event
 from edge.systemd import Beat
+from edge.threads import NamedThread
 from edge.wire import BatchDecoder, decode_mark, encode_mark, encode_u64, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -118,7 +119,7 @@ class Recorder:
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._decoders: dict[tuple[str, str], BatchDecoder] = {}
         self.session: RecordingSession | None = None
-        self._thread = threading.Thread(target=self._writer, name="recorder", daemon=True)
+        self._thread = NamedThread(target=self._writer, name="recorder", daemon=True)
         self._subs: list[Any] = []
         self._stopped = False
         self.recording = True

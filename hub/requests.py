@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.config.security import SecurityConfig
+from edge.threads import name_os_thread
 from hub.read_model import to_jsonable
 from hub.router import Router
 
@@ -100,7 +101,9 @@ class OperatorQueryable:
 
     def start(self) -> None:
         if self.workers:
-            self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix=self.name)
+            self._pool = ThreadPoolExecutor(
+                self.workers, thread_name_prefix=self.name, initializer=name_os_thread
+            )
         session = self.router.session
         self._queryables = [
             session.declare_queryable(self.key, self._on_query),

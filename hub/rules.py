@@ -44,6 +44,7 @@ from edge.config.control import (
 )
 from edge.config.site import SiteConfig
 from edge.keys import SiteKeys
+from edge.threads import NamedThread, name_os_thread
 from edge.wire import batch_values
 from hub.alarms.conditions import SampleCondition
 from hub.batch_feed import BatchFeed, FedBatch
@@ -223,9 +224,11 @@ class RuleEngine:
         commands.blocked = self.blocked
         self.lock = threading.Lock()
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
-        self._pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="rule-actions")
+        self._pool = ThreadPoolExecutor(
+            max_workers=4, thread_name_prefix="rule-actions", initializer=name_os_thread
+        )
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="rules", daemon=True)
+        self._thread = NamedThread(target=self._run, name="rules", daemon=True)
         self.queryable = OperatorQueryable(
             router, self.keys.hub("rules"), self._answer, site.security, "rules", workers=0
         )

@@ -32,6 +32,7 @@ from typing import Any
 
 from edge.config.site import SiteConfig, effective_yaml
 from edge.messages import Event
+from edge.threads import name_os_thread
 from edge.wire import plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -94,7 +95,9 @@ class SnapshotBuffer:
     # --- service ---------------------------------------------------------------------------------
 
     def start(self) -> None:
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="snapshot-writer")
+        self._pool = ThreadPoolExecutor(
+            1, thread_name_prefix="snapshots", initializer=name_os_thread
+        )
         self._consumer.start()
 
     def stop(self) -> None:

@@ -24,6 +24,7 @@ from typing import Any
 from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.messages import ALARM_STATE_TYPE, AlarmState
+from edge.threads import NamedThread
 from edge.wire import batch_values
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
 from hub.alarms.definitions import AlarmDef, build_definitions
@@ -124,7 +125,7 @@ class Supervisor:
         self.started_ns = 0
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=128 << 20)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
+        self._thread = NamedThread(target=self._run, name="supervisor", daemon=True)
         self._died: str | None = None
         self._journal_errors_told = 0
         self._journal_told_at = 0.0

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 
 from edge.config.site import SiteConfig
 from edge.messages import Event
+from edge.threads import NamedThread
 from edge.wire import batch_values, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -114,7 +115,7 @@ class FoxgloveLive:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._running = False
-        self._ticker = threading.Thread(target=self._tick, name="foxglove-tick", daemon=True)
+        self._ticker = NamedThread(target=self._tick, name="foxglove-tick", daemon=True)
         self.counts = {"messages": 0, "batches": 0, "implausible": 0, "mismatched": 0, "errors": 0}
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=FEED_QUEUE_BYTES)
         bus.subscribe(self.name, self._on_event)

@@ -31,6 +31,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from edge.config.notify import SmtpConfig
+from edge.threads import NamedThread
 from hub.errors import SecretError
 from hub.notify.clock import Clock
 from hub.notify.credentials import Secret
@@ -98,7 +99,7 @@ class Delivery:
         self._stop = threading.Event()
         self._abort = threading.Event()
         self._wake = threading.Event()
-        self._thread = threading.Thread(target=self._main, name="notify-delivery", daemon=True)
+        self._thread = NamedThread(target=self._main, name="notify-delivery", daemon=True)
 
     # --- lifecycle -----------------------------------------------------------------------------
 

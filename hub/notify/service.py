@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from edge.config.notify import NotifyConfig
+from edge.threads import NamedThread
 from hub.bus import EventBus
 from hub.errors import NotifyError
 from hub.notification import Notification
@@ -94,7 +95,7 @@ class EmailNotifier:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = threading.Event()
-        self._thread = threading.Thread(target=self._main, name="notify-policy", daemon=True)
+        self._thread = NamedThread(target=self._main, name="notify-policy", daemon=True)
         self._started = False
         self._started_wall = 0.0
         self._stopped = False

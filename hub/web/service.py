@@ -21,6 +21,7 @@ from pathlib import Path
 from aiohttp import web
 
 from edge.config.site import SiteConfig
+from edge.threads import NamedThread, name_os_thread
 from hub.errors import HubError
 from hub.web.api import MAX_BODY, Api, middlewares
 from hub.web.auth import Auth
@@ -99,10 +100,12 @@ class WebService:
         if self._running:
             return
         self.users.check()
-        self._pool = ThreadPoolExecutor(4, thread_name_prefix="dashboard-work")
+        self._pool = ThreadPoolExecutor(
+            4, thread_name_prefix="dash-work", initializer=name_os_thread
+        )
         self._ready.clear()
         self._error = None
-        self._thread = threading.Thread(target=self._run, name="dashboard", daemon=True)
+        self._thread = NamedThread(target=self._run, name="dashboard", daemon=True)
         self._thread.start()
         if not self._ready.wait(START_TIMEOUT_S):
             self.stop()
