@@ -53,7 +53,9 @@ def test_a_pool_names_its_workers_through_its_initializer():
 def test_a_running_hub_names_its_threads(tmp_path: Path):
     site = tmp_path / "site.yaml"
     site.write_text(HUB_SITE.format(router=free_port(), port=free_port()))
-    hub = Proc(["hub", "--config", str(site), "--data", str(tmp_path / "data")], tmp_path / "hub.log")
+    hub = Proc(
+        ["hub", "--config", str(site), "--data", str(tmp_path / "data")], tmp_path / "hub.log"
+    )
     try:
         wait_until(lambda: "dashboard on" in hub.output(), 60, "the hub's dashboard")
         pid = str(hub.popen.pid)
