@@ -88,10 +88,15 @@ def env() -> dict[str, str]:
     return e
 
 
+def _stat_cpu_s(stat: str) -> float:
+    """utime + stime from a /proc stat line, seconds."""
+    fields = stat.rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_s(pid: int) -> float:
     """utime + stime of one process, seconds."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return _stat_cpu_s(Path(f"/proc/{pid}/stat").read_text())
 
 
 def thread_cpu_s(pid: int) -> dict[str, float]:
@@ -104,9 +109,8 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
         except OSError:  # ended meanwhile
             continue
         name = stat[stat.index("(") + 1 : stat.rindex(")")]
-        fields = stat.rsplit(")", 1)[1].split()
-        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12]))
-    return {k: v / os.sysconf("SC_CLK_TCK") for k, v in out.items()}
+        out[name] = out.get(name, 0.0) + _stat_cpu_s(stat)
+    return out
 
 
 def measure(pid: int, seconds: float) -> tuple[float, dict[str, float]]:

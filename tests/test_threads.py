@@ -11,17 +11,7 @@ import pytest
 
 from edge.threads import NamedThread, name_os_thread, os_name
 from tests.procs import Proc, free_port, wait_until
-
-HUB_SITE = """\
-site: threads
-hub:
-  listen: [tcp/127.0.0.1:{router}]
-  dashboard: {{enabled: true, listen: "127.0.0.1:{port}"}}
-nodes:
-  wec:
-    streams:
-      t8: {{driver: wave_sim, rate_hz: 100, channels: [{{name: heave, unit: m}}]}}
-"""
+from tests.web.test_hub_dashboard import SITE as HUB_SITE  # a hub with its dashboard on
 
 
 def comm(tid: int, pid: str = "self") -> str:
