@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import json
 import os
+import shutil
 import signal
 import statistics
 import subprocess
@@ -312,6 +313,7 @@ def run(window: float, warmup: float) -> dict[str, Any]:
         log(f"A2: {100 * a2:.1f} % of a core")
     finally:
         ns.close()
+        shutil.rmtree(tmp, ignore_errors=True)  # ~250 MB of recording a run
     base = (a1 + a2) / 2
     loop = browsers_out["dashboard_cpu_pct"]["loop_cpu_s"]
     delays = browsers_out["delays_ms"]
