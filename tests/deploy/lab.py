@@ -147,6 +147,9 @@ class Lab:
             "PermitRootLogin prohibit-password",
             "MaxStartups 100",
             "LogLevel VERBOSE",
+            # As Debian's own sshd_config: Ansible copies files over SFTP (without it, each
+            # copy first fails over SFTP and scp and then falls back to a piped shell).
+            "Subsystem sftp internal-sftp",
         ]
         if os.geteuid() == 0:
             Path("/run/sshd").mkdir(mode=0o755, exist_ok=True)
