@@ -26,7 +26,7 @@ imports: $(STAMP)
 	$(VENV)/bin/lint-imports
 
 test: lint typecheck imports
-	$(PY) -m pytest -q --durations=15 -n 2 --dist loadgroup
+	$(PY) -m pytest -q --durations=15 -n 2
 
 # What ansible/site.yml installs on every host (README "Deploying a site"): fleetdaq's wheel and
 # the wheels of every dependency of the extras asked for, for the hosts' platform, e.g.

@@ -7,14 +7,16 @@ hub receive time. One writer thread checks each batch completely (every length, 
 node/stream it claims, a plausible acquisition time), drops duplicates, writes the received
 bytes untouched into the session, and at least every `flush_interval_s` closes the chunk in
 progress, fsyncs, and acks per stream the highest contiguous sequence now durable
-(`hub.stream_stats`). Events come from the event bus (this service is one of its
-subscribers) and node health from the node watch; both are written on the same thread.
+(`hub.stream_stats`; the events its accounting raises are `hub.stream_reports`). Events
+come from the event bus (this service is one of its subscribers) and node health from the
+node watch; both are written on the same thread.
 
 No single message can stop the writer: anything unexpected while handling one abandons the
 open file (so what is closed stays readable), rolls the streams back to their last ack,
 raises an event, and goes on. If the writer thread dies anyway, `failure()` says so and the
 hub exits non-zero. A write error (a full disk) abandons the file, rolls every stream back,
-raises an event and retries; the edges keep their spools until acks resume, then replay.
+raises an event and retries; the edges keep their spools until acks resume, then replay
+(`hub.write_recovery`).
 
 Stopping undeclares the subscribers first, then drains the queue, then closes files, so every
 received batch is on disk when `stop()` returns.
@@ -22,7 +24,6 @@ received batch is on disk when `stop()` returns.
 
 from __future__ import annotations
 
-import errno
 import logging
 import queue
 import threading
@@ -45,7 +46,9 @@ from hub.read_model import ReadModel, RecorderView
 from hub.refused import RefusedKeys
 from hub.router import Router
 from hub.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
+from hub.stream_reports import StreamReports
 from hub.stream_stats import StreamStats
+from hub.write_recovery import Held, WriteRecovery
 
 log = logging.getLogger("fleetdaq.recorder")
 
@@ -55,10 +58,7 @@ Tap = Callable[[str, bytes, int, int, str], None]
 _STOP = object()
 _DATA, _EVENT, _MESSAGE, _DROPS = 0, 1, 2, 3
 _MAX_SEQUENCE = 2**63 - 1
-_RETRY_AFTER_ERROR_S = 2.0
-_MAX_HELD_EVENTS = 10_000
 _VIEW_INTERVAL_S = 0.25
-_REPORT_EVERY_S = 60.0
 
 
 class Recorder:
@@ -102,6 +102,7 @@ class Recorder:
         self.streams = {(st.node, st.stream): st for st in self.routes.values()}
         self.refused = refused
         self.feed = feed or BatchFeed()
+        """Accepted batches go on to the services that look at the data (alarms, ...)."""
         self._bytes_before = 0
         """Bytes of the sessions before the current one (stop and start make a new one)."""
         self.beat = Beat("recorder writer")
@@ -109,11 +110,8 @@ class Recorder:
         self.tap: Tap | None = None
         """Also handed every message recorded besides batches (the snapshot buffer), on the
         writer thread, whether or not the recorder is recording. Must be quick."""
-        """Accepted batches go on to the services that look at the data (alarms, ...)."""
-        self.write_errors = 0
         self.writer_errors = 0
-        self.events_not_recorded = 0
-        self.messages_not_recorded = 0
+        self.recovery = WriteRecovery(bus, self._abandon)
         self.lock = threading.Lock()
         """Held by the writer thread while it handles an item; `summary()` takes it."""
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -125,16 +123,9 @@ class Recorder:
         self.recording = True
         """False while stopped by an operator or a rule (`stop_recording`)."""
         self._died: str | None = None
-        self._broken_until = 0.0
-        self._failure_reported = False
-        self._held: list[tuple[str, bytes, int, int, str]] = []
-        self._unflushed: list[tuple[str, bytes, int, int, str]] = []
-        """Events and messages written since the last successful flush: if the file they went
-        into is abandoned, they are held again (data batches roll back and the edges resend)."""
-        """Events and messages waiting for the disk to take writes again (bounded)."""
         self._last_flush = time.monotonic()
         self._last_view = 0.0
-        self._implausible_reported: dict[tuple[str, str], float] = {}
+        self.reports = StreamReports(bus)
         self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=100_000)
 
     # --- lifecycle ----------------------------------------------------------------------------
@@ -309,7 +300,7 @@ class Recorder:
             elif kind == _EVENT:
                 self._record_event(*item[1:])
             elif kind == _DROPS:
-                self._dropped_by_edge(*item[1:])
+                self.reports.dropped_by_edge(*item[1:])
             else:
                 self._record_message(*item[1:])
         except Exception as err:  # no single message may stop the writer
@@ -322,14 +313,7 @@ class Recorder:
         last flush wait for the next one."""
         self.writer_errors += 1
         log.error("recorder: unexpected error handling a message", exc_info=True)
-        assert self.session is not None
-        abandoned = self.session.abandon()
-        for st in self.streams.values():
-            st.rollback()
-        lost_with_file, self._unflushed = self._unflushed, []
-        self._held[:0] = lost_with_file
-        if not self._recovering():
-            self._broken_until = time.monotonic()  # writable at once; resumed at the next flush
+        abandoned = self.recovery.abandon_after_unexpected()
         if self.writer_errors <= 10 or self.writer_errors % 100 == 0:
             kept = f"; abandoned {abandoned.name} (fleetdaq verify --recover)" if abandoned else ""
             self.bus.emit(
@@ -341,83 +325,28 @@ class Recorder:
                 errors=self.writer_errors,
             )
 
-    def _writable(self) -> bool:
-        return time.monotonic() >= self._broken_until
-
     def _guarded(self, what: str, fn: Any, *args: Any) -> bool:
         """Run a session write; on OSError abandon the file and retry later. False if failed."""
         try:
             fn(*args)
             return True
         except OSError as err:
-            self._write_failed(what, err)
+            self.recovery.failed(what, err)
             return False
 
-    def _write_failed(self, what: str, err: OSError) -> None:
+    def _abandon(self) -> Path | None:
         assert self.session is not None
-        self.write_errors += 1
-        first = not self._failure_reported
-        self._failure_reported = True
-        self._broken_until = time.monotonic() + _RETRY_AFTER_ERROR_S
         abandoned = self.session.abandon()
         for st in self.streams.values():
             st.rollback()
-        lost_with_file, self._unflushed = self._unflushed, []
-        self._held[:0] = lost_with_file  # written into the abandoned file: write them again
-        if first:
-            kept = f"abandoned {abandoned.name} (fleetdaq verify --recover); " if abandoned else ""
-            full = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-            self.bus.emit(
-                logging.CRITICAL if full else logging.ERROR,
-                "recorder",
-                "disk_full" if full else "write_error",
-                f"{what} failed: {err}; {kept}not acking, so edges keep spooling; "
-                f"retrying every {_RETRY_AFTER_ERROR_S:g} s",
-                errno=err.errno or 0,
-            )
+        return abandoned
 
-    def _recovering(self) -> bool:
-        """A write failed and no flush has succeeded since: what is written now may still go
-        down with the next abandoned file, so events and messages wait."""
-        return self._broken_until != 0.0
-
-    def _resumed(self) -> None:
-        """A flush succeeded after a write error: the disk takes writes again. Called only
-        after the flush (a write alone may land in MCAP's in-memory chunk and fail later)."""
-        if not self._recovering():
-            return
-        self._broken_until = 0.0
-        held, self._held = self._held, []
-        for item in held:
-            self._write_held(item)
-        if self._failure_reported:
-            self._failure_reported = False
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "write_resumed",
-                f"writing again ({len(held)} held event(s) and message(s) written now); edges "
-                "replay what was not acked",
-                held=len(held),
-            )
-
-    def _hold(self, item: tuple[str, bytes, int, int, str]) -> None:
-        # Kept until writing resumes, so the recording still tells what happened. Past the
-        # bound they are still in events.log (events) and counted here.
-        if len(self._held) < _MAX_HELD_EVENTS:
-            self._held.append(item)
-        elif item[4] == EVENT_TYPE:
-            self.events_not_recorded += 1
-        else:
-            self.messages_not_recorded += 1
-
-    def _write_held(self, item: tuple[str, bytes, int, int, str]) -> None:
-        topic, payload, publish, recv_ns, msgtype = item
+    def _write_held(self, item: Held) -> None:
         assert self.session is not None
-        if self._guarded("writing", self.session.write, topic, payload, publish, recv_ns, msgtype):
-            self._unflushed.append(item)
+        if self._guarded("writing", self.session.write, *item):
+            self.recovery.unflushed.append(item)
         else:
-            self._hold(item)
+            self.recovery.hold(item)
 
     def _record_event(self, payload: bytes, time_ns: int, recv_ns: int) -> None:
         publish = time_ns if plausible_time(time_ns, recv_ns) else recv_ns
@@ -433,24 +362,10 @@ class Recorder:
             self.tap(topic, payload, publish, recv_ns, msgtype)
         if not self.recording:
             return  # stopped by an operator or a rule: nothing is written (nothing is owed)
-        if self._recovering():
-            self._hold(item)
+        if self.recovery.recovering():
+            self.recovery.hold(item)
             return
         self._write_held(item)
-
-    def _malformed(self, st: StreamStats, err: WireError) -> None:
-        st.malformed += 1
-        if st.malformed == 1 or st.malformed % 1000 == 0:
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "malformed",
-                f"{st.node}/{st.stream}: refused a payload that is not a valid batch of this "
-                f"stream ({err}); {st.malformed} so far",
-                node=st.node,
-                stream=st.stream,
-                count=st.malformed,
-            )
 
     def _decoder(self, st: StreamStats) -> BatchDecoder:
         """The stream's decoder (writer thread only): its strings are parsed once, not per
@@ -475,43 +390,24 @@ class Recorder:
                 # it sends. Believing it would write off every batch below it as lost.
                 raise WireError(f"floor {floor} above the batch's own sequence {h.sequence}")
         except WireError as err:
-            self._malformed(st, err)
+            self.reports.malformed(st, err)
             return
         if epoch is not None and epoch != st.epoch:
-            self._spool_restarted(st, epoch, h.sequence)
+            self.reports.spool_restarted(st, epoch, h.sequence)
         if st.contiguous is None and floor is None and h.sequence != 0:
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "late_start",
-                f"{node}/{stream} first seen at sequence {h.sequence} with no spool floor: "
-                "batches before it were not received by this hub",
-                node=node,
-                stream=stream,
-                sequence=h.sequence,
-            )
-        if not self._writable():
+            self.reports.late_start(st, h.sequence)
+        if not self.recovery.writable():
             st.deferred += 1
             return
         is_new, newly_lost = st.offer(h.sequence, floor)
         if newly_lost:
-            self.bus.emit(
-                logging.ERROR,
-                "recorder",
-                "lost",
-                f"{node}/{stream}: {newly_lost} batch(es) below sequence {floor} were never "
-                "received and the edge no longer holds them",
-                node=node,
-                stream=stream,
-                lost=newly_lost,
-                floor=floor or 0,
-            )
+            self.reports.lost_below_floor(st, newly_lost, floor)
         if not is_new:
             return
         publish = h.first_sample_time_ns
         if not plausible_time(publish, recv_ns):
             publish = recv_ns
-            self._implausible(st, h.first_sample_time_ns)
+            self.reports.implausible(st, h.first_sample_time_ns)
         if (
             st.recorded
             and self.recording
@@ -533,103 +429,35 @@ class Recorder:
             h.sequence, h.scan_count, h.samples, recv_ns, h.first_sample_time_ns, h.sample_period_ns
         )
         if gap is not None:
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "acquisition_gap",
-                f"{node}/{stream}: {gap:.3f} s without scans before sequence {h.sequence} "
-                "(the edge was not acquiring)",
-                node=node,
-                stream=stream,
-                gap_s=round(gap, 6),
-            )
-
-    def _spool_restarted(self, st: StreamStats, epoch: int, seq: int) -> None:
-        """A batch of a spool numbering this hub has not seen. The first of a stream: noted.
-        After another one (the edge's spool was wiped or replaced, so its sequences start
-        again at 0): the stream is counted afresh, or every batch would pass for a replay of
-        one already recorded, go unrecorded, and in time be acked and deleted at the edge."""
-        if st.contiguous is None and st.epoch is None:
-            st.epoch = epoch
-            return
-        lost = st.restart(epoch)
-        if st.spool_restarts <= 10 or st.spool_restarts % 1000 == 0:  # two edges, one name
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "spool_restarted",
-                f"{st.node}/{st.stream}: the edge's spool numbers its batches afresh (now at "
-                f"sequence {seq}: a new or wiped spool); counted from here"
-                + (f", {lost} batch(es) it still owed are lost" if lost else "")
-                + f" ({st.spool_restarts} time(s) so far)",
-                node=st.node,
-                stream=st.stream,
-                sequence=seq,
-                lost=lost,
-                restarts=st.spool_restarts,
-            )
-
-    def _dropped_by_edge(self, st: StreamStats, first: int, last: int) -> None:
-        newly_lost = st.dropped_by_edge(first, last)
-        if newly_lost:
-            self.bus.emit(
-                logging.ERROR,
-                "recorder",
-                "lost",
-                f"{st.node}/{st.stream}: {newly_lost} batch(es) of {first}..{last}, dropped by "
-                "the edge's full spool, were never received by this hub",
-                node=st.node,
-                stream=st.stream,
-                lost=newly_lost,
-                first=first,
-                last=last,
-                floor=last + 1,
-            )
-
-    def _implausible(self, st: StreamStats, t_ns: int) -> None:
-        st.implausible_times += 1
-        now = time.monotonic()
-        last = self._implausible_reported.get((st.node, st.stream))
-        if last is None or now - last >= _REPORT_EVERY_S:
-            self._implausible_reported[(st.node, st.stream)] = now
-            self.bus.emit(
-                logging.ERROR,
-                "recorder",
-                "implausible_time",
-                f"{st.node}/{st.stream}: acquisition time {t_ns} ns cannot be true (is the "
-                "edge's clock set?); recorded with the hub's receive time as publish time "
-                f"({st.implausible_times} so far)",
-                node=st.node,
-                stream=st.stream,
-                time_ns=t_ns,
-            )
+            self.reports.acquisition_gap(st, gap, h.sequence)
 
     def _flush_and_ack(self) -> None:
         assert self.session is not None
         self._last_flush = time.monotonic()
-        if not self._writable():
+        recovery = self.recovery
+        if not recovery.writable():
             return
-        if self._recovering() and self.session.current_file is None and self._held:
+        if recovery.recovering() and self.session.current_file is None and recovery.held:
             # No batch has come to open a file since the error (every edge may be down): the
             # oldest held event opens one, so this flush tells whether writing works again
             # and the events raised meanwhile are not kept in memory until a batch comes.
-            item = self._held[0]
+            item = recovery.held[0]
             if self.recording:
                 if not self._guarded("writing", self.session.write, *item):
                     return  # refused again: still held, retried in 2 s
-                self._unflushed.append(self._held.pop(0))
+                recovery.unflushed.append(recovery.held.pop(0))
         if self.session.due_split(time.time_ns()):
             if not self._guarded("closing a file", self.session.split):
                 return
         elif not self._guarded("flushing", self.session.flush):
             return
-        self._unflushed = []  # durable now
-        if self._recovering() and self.session.current_file is not None:
+        recovery.flushed()  # durable now
+        if recovery.recovering() and self.session.current_file is not None:
             # The flush of a file went through: writing works again. The held events go in
             # now and are made durable by the next flush (held again if that fails). With no
             # file open (abandoned, nothing written since) the flush wrote nothing and proves
             # nothing: the next batch opens a file, and its flush tells.
-            self._resumed()
+            recovery.resume(self._write_held)
         put = self.router.session.put
         for st in self.streams.values():
             st.durable = st.contiguous
@@ -653,7 +481,7 @@ class Recorder:
                 "stopped"
                 if not self.recording
                 else "recording"
-                if self._writable()
+                if self.recovery.writable()
                 else "disk_error"
             )
         current = s.current_file if s is not None else None
@@ -670,12 +498,12 @@ class Recorder:
                 bytes_written=self._bytes_before + (s.closed_bytes if s is not None else 0) + size,
                 files=tuple(str(p) for p in s.files()) if s is not None else (),
                 abandoned_files=tuple(str(p) for p in s.abandoned) if s is not None else (),
-                write_errors=self.write_errors,
+                write_errors=self.recovery.write_errors,
                 writer_errors=self.writer_errors,
                 malformed=sum(st.malformed for st in self.streams.values()),
                 overflow=sum(st.overflow for st in self.streams.values()),
                 queued_bytes=sum(st.queued_bytes for st in self.streams.values()),
-                events_not_recorded=self.events_not_recorded,
+                events_not_recorded=self.recovery.events_not_recorded,
             ),
         )
 
@@ -758,10 +586,11 @@ class Recorder:
                     f"{k[0]}/{k[1]}": st.summary() for k, st in sorted(self.streams.items())
                 },
                 "malformed": sum(st.malformed for st in self.streams.values()),
-                "write_errors": self.write_errors,
+                "write_errors": self.recovery.write_errors,
                 "writer_errors": self.writer_errors,
                 "overflow": sum(st.overflow for st in self.streams.values()),
                 "refused": self.refused.total,
                 "refused_keys": dict(self.refused.counts),
-                "events_not_recorded": self.events_not_recorded,
+                "events_not_recorded": self.recovery.events_not_recorded,
+                "messages_not_recorded": self.recovery.messages_not_recorded,
             }

@@ -1,22 +1,33 @@
-"""`make test` runs the tests on two pytest-xdist workers (`--dist loadgroup`). Each test
-module stays on one worker, so its module fixtures (a deploy lab, a hub with its edges, a
-browser) are made once; the PTP tests share one lab of ptp4l processes and the session's
-guard on the host clock, so they all run on one worker."""
+"""`make test` runs the tests on two pytest-xdist workers. Each test module stays on one worker,
+so its module fixtures (a deploy lab, a hub with its edges, a browser) are made once and its
+tests run in file order; the PTP tests share one lab of ptp4l processes and the session's
+guard on the host clock, so they all run on one worker.
+
+The grouping is a scheduler of our own (xdist's `pytest_xdist_make_scheduler` hook): xdist's
+``--dist loadgroup`` ignores ``xdist_group`` marks under pytest 9 (every test of a group was
+spread over both workers), and ``--dist loadfile`` would make two PTP labs."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
+from xdist.scheduler import LoadScopeScheduling
 
-SHARED_SESSION = {"tests/ptp": "ptp"}
-"""Folders whose modules share session fixtures: one group (one worker) each."""
+SHARED_SESSION = ("tests/ptp/",)
+"""Folders whose modules share session fixtures: all of a folder's tests run on one worker."""
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        module = item.nodeid.split("::", 1)[0]
-        group = next(
-            (g for folder, g in SHARED_SESSION.items() if module.startswith(folder + "/")), module
-        )
-        item.add_marker(pytest.mark.xdist_group(group))
+def scope_of(nodeid: str) -> str:
+    """The unit a worker takes whole: a test's module, or a folder of `SHARED_SESSION`."""
+    module = nodeid.split("::", 1)[0]
+    return next((folder for folder in SHARED_SESSION if module.startswith(folder)), module)
+
+
+class ByModule(LoadScopeScheduling):
+    def _split_scope(self, nodeid: str) -> str:
+        return scope_of(nodeid)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> ByModule:
+    return ByModule(config, log)

@@ -12,8 +12,9 @@ PACKAGES = ("fleetdaq", "hub", "edge", "ptp")
 LONG_MODULES_WITH_A_REASON = {
     # One simulated device behind a vendor API's whole surface (errors, constants, stream mode).
     "edge/drivers/sim_ljm.py": "the simulated T8: every LJM call the driver makes",
-    # One writer thread's whole life: checks, accounting hooks, flush/ack, write errors.
-    "hub/recorder.py": "the recorder's writer thread and its failure handling",
+    # One writer thread's whole life: checks, accounting, flush/ack, control (the events of
+    # its accounting are hub/stream_reports.py, its memory of write errors hub/write_recovery.py).
+    "hub/recorder.py": "the recorder's writer thread, its flush and ack, and its control",
 }
 
 
