@@ -29,5 +29,14 @@ class ByModule(LoadScopeScheduling):
         return scope_of(nodeid)
 
 
-def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> ByModule:
-    return ByModule(config, log)
+class Scheduling:
+    """Registered only when xdist is loaded (``-p no:xdist`` does not know its hook)."""
+
+    @staticmethod
+    def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> ByModule:
+        return ByModule(config, log)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.pluginmanager.hasplugin("xdist"):
+        config.pluginmanager.register(Scheduling(), "fleetdaq-scheduling")

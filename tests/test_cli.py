@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import socket
@@ -99,6 +100,53 @@ def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_pa
     assert not list(session.glob("*" + ACTIVE_SUFFIX))
     assert list(session.glob("*.mcap"))
     assert (session / "metadata.yaml").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP], ids=["ctrl-c", "hangup"])
+def test_a_ctrl_c_or_hangup_while_the_edges_start_stops_everything_cleanly(
+    site: Path, tmp_path: Path, sig: signal.Signals
+):
+    """The terminal's Ctrl-C (or its closing: SIGHUP) reaches its foreground process group.
+    Sent the moment the demo has started its edges, while they are still importing: the demo
+    stops them, none is reported failed, none is left running."""
+    import psutil
+
+    rec = tmp_path / "rec"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "fleetdaq", "demo", "--config", str(site), "--data", str(rec)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    edges: list[psutil.Process] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(edges) < 2:
+            assert p.poll() is None, p.communicate()[1][-3000:]
+            assert time.monotonic() < deadline, "the demo never started its edges"
+            edges = [c for c in psutil.Process(p.pid).children() if "edge" in " ".join(c.cmdline())]
+            time.sleep(0.01)
+        import os
+
+        os.killpg(p.pid, sig)
+        _, err = p.communicate(timeout=60)
+        _, alive = psutil.wait_procs(edges, timeout=10)
+        assert alive == [], "edges left running after the demo ended"
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        for e in edges:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                e.kill()
+    (session,) = [d for d in rec.iterdir() if d.is_dir() and d.name != "spool"]
+    logs = {f.name: f.read_text()[-2000:] for f in (session / "logs").glob("*.log")}
+    assert p.returncode == 0, (err[-3000:], logs)
+    assert "failed" not in err, err[-3000:]
+    assert not any("Aborted!" in log or "Traceback" in log for log in logs.values()), logs
+    assert not list(session.glob("*" + ACTIVE_SUFFIX))
 
 
 def test_unknown_node_is_one_line_and_exit_2(site: Path):

@@ -33,8 +33,9 @@ def load_site(path: str | Path) -> SiteConfig:
         fail(str(err))
 
 
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM: both stop a process cleanly."""
+def stop_on_signals(hangup: bool = False) -> threading.Event:
+    """An event set by SIGINT or SIGTERM (and SIGHUP with `hangup`: its terminal closed): each
+    stops a process cleanly."""
     stop = threading.Event()
     # `kill -USR1 <pid>` prints every thread's stack to stderr: for a process that hangs.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
@@ -44,6 +45,8 @@ def stop_on_signals() -> threading.Event:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    if hangup:
+        signal.signal(signal.SIGHUP, handler)
     return stop
 
 

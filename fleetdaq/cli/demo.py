@@ -78,7 +78,9 @@ def demo(
                 fail(f"{option}: {err}")
     from hub.demo import run_demo
 
-    stop = stop_on_signals()
+    # The edges run in process groups of their own (a terminal's Ctrl-C or hangup reaches the
+    # demo alone), so the demo stops them on either.
+    stop = stop_on_signals(hangup=True)
     root = Path(data_dir) if data_dir else default_demo_dir()
     code, summary = run_demo(site, path, root, duration, stop, listen, dashboard, foxglove)
     if as_json:
