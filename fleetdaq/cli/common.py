@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import logging
+import os
 import signal
 import sys
 import threading
@@ -20,6 +22,22 @@ def fail(message: str, code: int = 2) -> NoReturn:
     """Print one line to stderr and exit (2: bad input, 1: it did not work)."""
     click.echo(message, err=True)
     sys.exit(code)
+
+
+def finish(code: int) -> NoReturn:
+    """End a long-running command (hub, edge, demo) once it has stopped cleanly: logs and
+    output flushed, then `os._exit`, without the interpreter's finalization.
+
+    Zenoh's native threads (PyO3) may still reach into Python while it finalizes. glibc then
+    ends such a thread with a forced unwind, a Rust frame swallows it, and the process aborts
+    ("FATAL: exception not rethrown", exit -6) after a clean stop: seen on edges under load
+    (cpython#87135, PyO3#4874). By now every file is closed and fsynced and the Zenoh session
+    is closed, so there is nothing left for finalization to do."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 def load_site(path: str | Path) -> SiteConfig:

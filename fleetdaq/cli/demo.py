@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import click
 
-from fleetdaq.cli.common import load_site, stop_on_signals
+from fleetdaq.cli.common import finish, load_site, stop_on_signals
 
 
 @click.command()
@@ -85,4 +84,4 @@ def demo(
     code, summary = run_demo(site, path, root, duration, stop, listen, dashboard, foxglove)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
-    sys.exit(code)
+    finish(code)

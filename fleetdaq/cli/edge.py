@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from fleetdaq.cli.common import check_tls, fail, load_site, setup_logging, stop_on_signals
+from fleetdaq.cli.common import (
+    check_tls,
+    fail,
+    finish,
+    load_site,
+    setup_logging,
+    stop_on_signals,
+)
 
 
 @click.command()
@@ -50,3 +57,4 @@ def edge(
                 pass
     except DriverError as err:
         fail(f"{config}: nodes.{node}: {err}", 1)
+    finish(0)

@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
 import click
 
-from fleetdaq.cli.common import check_tls, fail, load_site, setup_logging, stop_on_signals
+from fleetdaq.cli.common import (
+    check_tls,
+    fail,
+    finish,
+    load_site,
+    setup_logging,
+    stop_on_signals,
+)
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -100,7 +106,7 @@ def hub(
     log.info("stopped: %s", _progress_line(final))
     if summary_path is not None:
         summary_path.write_text(json.dumps(final, indent=2))
-    sys.exit(code)
+    finish(code)
 
 
 def _progress_line(summary: dict[str, Any]) -> str:
