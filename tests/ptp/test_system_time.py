@@ -15,11 +15,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from rosbags.highlevel import AnyReader
 
 from ptp.reader import Ptp4lReader
-from tests.procs import Proc, free_port, sessions, wait_for_port
+from tests.procs import HubClient, Proc, free_port, sessions, wait_for_port
 from tests.ptp.conftest import PtpLab
 from tests.ptp.lab import REPO, wait_for
 
@@ -70,6 +71,13 @@ def first(log: Path, tag: str, node: str, after_ns: int = 0) -> tuple[int, str, 
             if e[1] == tag and e[2].startswith(f"{node}:") and e[0] >= after_ns - 1_000_000
         ),
         None,
+    )
+
+
+def env_batches(status: dict[str, Any], node: str) -> int:
+    """The batches of `node`/env the hub has received, from its status."""
+    return next(
+        (s["batches"] for s in status["streams"] if (s["node"], s["stream"]) == (node, "env")), 0
     )
 
 
@@ -150,6 +158,12 @@ def test_edges_stamp_ptp_quality_and_the_hub_raises_grandmaster_events(
             lost = wait_for(lambda n=node: first(log, "node_holdover", n, killed_ns), 5, "loss")
             assert lost[0] - killed_ns < 2_000_000_000, (node, (lost[0] - killed_ns) / 1e9)
         wait_for(lambda: first(log, "node_freerun", "wec", killed_ns), 10, "freerun")
+        # The hub heard of FREERUN from the node's health; the batches stamped since may still
+        # be on their way (a loaded machine). Stopping now would leave them in the spool and
+        # out of the recording read below: wait until the hub has had a few more.
+        with HubClient(port, "timetest") as client:
+            now = client.wait(lambda st: env_batches(st, "wec"), 10, "wec/env in the status")
+            client.wait(lambda st: env_batches(st, "wec") >= now + 5, 15, "wec/env after freerun")
     finally:
         codes = {p.log_path.stem: p.terminate() for p in reversed(procs)}
         for p in procs:
