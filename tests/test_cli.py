@@ -69,9 +69,10 @@ def test_demo_runs_unattended_and_prints_a_json_summary(site: Path, tmp_path: Pa
     assert "gaps" in r.stderr, "the table is shown"
 
 
-def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_path: Path):
-    rec = tmp_path / "rec"
-    p = subprocess.Popen(
+def start_demo(site: Path, rec: Path) -> subprocess.Popen[str]:
+    """The demo as a terminal runs it: its own session, so a test can signal its process group
+    as the terminal would (and nothing else)."""
+    return subprocess.Popen(
         [sys.executable, "-m", "fleetdaq", "demo", "--config", str(site), "--data", str(rec)],
         cwd=REPO,
         stdout=subprocess.PIPE,
@@ -79,6 +80,11 @@ def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_pa
         text=True,
         start_new_session=True,
     )
+
+
+def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_path: Path):
+    rec = tmp_path / "rec"
+    p = start_demo(site, rec)
     try:
         deadline = time.monotonic() + 30
         while not list(rec.glob("*/*.mcap" + ACTIVE_SUFFIX)):
@@ -113,14 +119,7 @@ def test_a_ctrl_c_or_hangup_while_the_edges_start_stops_everything_cleanly(
     import psutil
 
     rec = tmp_path / "rec"
-    p = subprocess.Popen(
-        [sys.executable, "-m", "fleetdaq", "demo", "--config", str(site), "--data", str(rec)],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    p = start_demo(site, rec)
     edges: list[psutil.Process] = []
     try:
         deadline = time.monotonic() + 60
