@@ -425,11 +425,10 @@ class Recorder:
             return
         late = st.last_sequence is not None and h.sequence < st.last_sequence
         self.feed.publish(FedBatch(node, stream, h, payload, recv_ns, late))
-        gap = st.count(
+        for gap_s, before in st.count(
             h.sequence, h.scan_count, h.samples, recv_ns, h.first_sample_time_ns, h.sample_period_ns
-        )
-        if gap is not None:
-            self.reports.acquisition_gap(st, gap, h.sequence)
+        ):
+            self.reports.acquisition_gap(st, gap_s, before)
 
     def _flush_and_ack(self) -> None:
         assert self.session is not None

@@ -16,6 +16,10 @@ from typing import Any
 from edge.wire import SampleFormat
 from hub.read_model import StreamView
 
+MAX_SPANS = 4096
+"""Batches whose time span is kept to find acquisition gaps: replays come back in order
+within this many (a spool replays in order, from its oldest unacked batch)."""
+
 
 @dataclass(slots=True)
 class StreamStats:
@@ -70,8 +74,10 @@ class StreamStats:
     """The edge spool's numbering these sequences belong to (None: an edge that does not say)."""
     spool_restarts: int = 0
     """Times the edge's spool started its numbering again (a new or wiped spool)."""
-    _next_t: float | None = None
-    _in_order: bool = False
+    _spans: dict[int, tuple[int, float]] = field(default_factory=dict)
+    """Sequence -> (its first scan's time, the time after its last scan) of the recent
+    batches: a gap is found between neighbouring sequences whichever of the two came first
+    (after an edge restart its live batches can overtake the replay of what it spooled)."""
     _recent: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=64))
 
     @property
@@ -130,7 +136,6 @@ class StreamStats:
             return False, newly_lost
         if self.last_sequence is not None and seq < self.last_sequence:
             self.late += 1
-        self._in_order = self.last_sequence is not None and seq == self.last_sequence + 1
         self.pending.add(seq)
         self._absorb()
         if self.last_sequence is None or seq > self.last_sequence:
@@ -147,23 +152,31 @@ class StreamStats:
 
     def count(
         self, seq: int, scans: int, samples: int, recv_ns: int, t0: int, period_ns: float
-    ) -> float | None:
-        """Count an accepted batch; return the acquisition gap (s) before it, if any."""
+    ) -> list[tuple[float, int]]:
+        """Count an accepted batch; return the acquisition gaps it closes: (seconds without
+        scans, the sequence after them), against its neighbours received so far."""
         self.batches += 1
         self.scans += scans
         self.samples += samples
         self.last_receive_ns = recv_ns
         self._recent.append((recv_ns, self.scans))
-        gap = None
-        if self._next_t is not None and self._in_order:
-            missing_s = (t0 - self._next_t) / 1e9
-            if missing_s > max(2 * period_ns / 1e9, 0.02):
-                gap = missing_s
-                self.acq_gaps += 1
-                self.acq_gap_s += missing_s
-        if seq == self.last_sequence:
-            self._next_t = t0 + scans * period_ns
-        return gap
+        if seq in self._spans:  # sent again after a rollback: its gaps are counted
+            return []
+        end = t0 + scans * period_ns
+        gaps = []
+        before, after = self._spans.get(seq - 1), self._spans.get(seq + 1)
+        if before is not None:
+            gaps.append(((t0 - before[1]) / 1e9, seq))
+        if after is not None:
+            gaps.append(((after[0] - end) / 1e9, seq + 1))
+        self._spans[seq] = (t0, end)
+        if len(self._spans) > MAX_SPANS:
+            del self._spans[next(iter(self._spans))]
+        found = [(s, at) for s, at in gaps if s > max(2 * period_ns / 1e9, 0.02)]
+        for s, _ in found:
+            self.acq_gaps += 1
+            self.acq_gap_s += s
+        return found
 
     def restart(self, epoch: int) -> int:
         """The edge's spool numbers from 0 again (`epoch` is its new numbering): what this hub
@@ -179,7 +192,7 @@ class StreamStats:
         self.pending = set()
         self.reported_drops = []
         self.counted_lost = []
-        self._in_order = False
+        self._spans = {}
         return lost
 
     def rollback(self) -> None:
