@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import secrets
 import signal
 import subprocess
@@ -115,6 +116,8 @@ def status_table(view: HubView, site: SiteConfig, elapsed: float) -> Table:
 def _spawn_edges(
     site: SiteConfig, config: Path, endpoint: str | None, log_dir: Path, spool_dir: Path
 ) -> dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]]:
+    # The edges stop when the thread that started them ends (`--with-parent`): the main one.
+    assert threading.current_thread() is threading.main_thread()
     log_dir.mkdir(parents=True, exist_ok=True)
     procs: dict[str, tuple[subprocess.Popen[bytes], IO[bytes]]] = {}
     for node in site.nodes:
@@ -129,6 +132,8 @@ def _spawn_edges(
             node,
             "--spool",
             str(spool_dir),
+            "--with-parent",  # a demo killed outright (SIGKILL, OOM) leaves no edge running
+            str(os.getpid()),
         ]
         if endpoint:
             cmd += ["--connect", endpoint]

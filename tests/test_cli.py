@@ -149,6 +149,51 @@ def test_a_ctrl_c_or_hangup_while_the_edges_start_stops_everything_cleanly(
     assert not list(session.glob("*" + ACTIVE_SUFFIX))
 
 
+def test_a_demo_killed_outright_leaves_no_edge_running(site: Path, tmp_path: Path):
+    """SIGKILL (or the OOM killer) gives the demo no chance to stop its edges, which run in
+    process groups of their own: the kernel tells each (SIGTERM) and each stops cleanly."""
+    import psutil
+
+    rec = tmp_path / "rec"
+    p = start_demo(site, rec)
+    edges: list[psutil.Process] = []
+    try:
+        deadline = time.monotonic() + 60
+        while not list(rec.glob("*/*.mcap" + ACTIVE_SUFFIX)) or len(edges) < 2:
+            assert p.poll() is None, p.communicate()[1][-3000:]
+            assert time.monotonic() < deadline, "the demo never started recording"
+            edges = [c for c in psutil.Process(p.pid).children() if "edge" in " ".join(c.cmdline())]
+            time.sleep(0.05)
+        p.kill()
+        p.communicate(timeout=30)
+        _, alive = psutil.wait_procs(edges, timeout=30)
+        assert alive == [], "edges left running after the demo was killed"
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        for e in edges:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                e.kill()
+    (session,) = [d for d in rec.iterdir() if d.is_dir() and d.name != "spool"]
+    logs = {f.name: f.read_text()[-2000:] for f in (session / "logs").glob("*.log")}
+    assert len(logs) == len(edges), logs
+    for name, text in logs.items():  # stopped as by SIGTERM: the agent's own clean stop
+        assert "agent [stopped]" in text, (name, text)
+        assert "Traceback" not in text, (name, text)
+
+
+def test_an_edge_whose_starter_is_already_gone_stops_at_once(site: Path, tmp_path: Path):
+    """`--with-parent` with a pid that is not its parent (the starter ended before the edge
+    could ask to be told): the edge stops cleanly instead of running on unwatched."""
+    r = _fleetdaq(
+        "edge", "--config", str(site), "--node", "shore", "--spool", str(tmp_path / "spool"),
+        "--with-parent", "1", timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "agent [stopped]" in r.stderr
+
+
 def test_unknown_node_is_one_line_and_exit_2(site: Path):
     r = _fleetdaq("edge", "--config", str(site), "--node", "buoy-7")
     assert r.returncode == 2

@@ -68,6 +68,24 @@ def stop_on_signals(hangup: bool = False) -> threading.Event:
     return stop
 
 
+def stop_with_parent(parent: int, stop: threading.Event) -> None:
+    """Stop (as on SIGTERM) when process `parent` ends, however it ends: the kernel sends this
+    process SIGTERM when the thread that started it exits (Linux's PR_SET_PDEATHSIG). For the
+    demo's edges: a demo killed with SIGKILL (or the OOM killer) leaves no edge running.
+
+    `parent` is the pid the starter gave: if it has already ended (this process has been
+    reparented), stop now, because the kernel will never send the signal."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0) != 0:
+        err = ctypes.get_errno()
+        fail(f"--with-parent: prctl(PR_SET_PDEATHSIG) failed: {os.strerror(err)}", 1)
+    if os.getppid() != parent:
+        stop.set()
+
+
 def setup_logging(verbose: bool) -> None:
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,

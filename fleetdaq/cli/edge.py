@@ -14,6 +14,7 @@ from fleetdaq.cli.common import (
     load_site,
     setup_logging,
     stop_on_signals,
+    stop_with_parent,
 )
 
 
@@ -28,12 +29,25 @@ from fleetdaq.cli.common import (
     help="Spool root, overriding the site file (default: /var/lib/fleetdaq/spool as root, "
     "~/.local/state/fleetdaq/spool otherwise).",
 )
+@click.option(
+    "--with-parent",
+    type=int,
+    hidden=True,
+    help="Stop cleanly when this pid (the process that started the edge) ends: for the demo.",
+)
 @click.option("-v", "--verbose", is_flag=True)
 def edge(
-    config: str, node: str, connect: tuple[str, ...], spool_dir: str | None, verbose: bool
+    config: str,
+    node: str,
+    connect: tuple[str, ...],
+    spool_dir: str | None,
+    with_parent: int | None,
+    verbose: bool,
 ) -> None:
     """Run the edge agent for one node until SIGTERM or Ctrl-C."""
     stop = stop_on_signals()  # first: a signal during start-up must still stop cleanly
+    if with_parent is not None:
+        stop_with_parent(with_parent, stop)
     site = load_site(config)
     if node not in site.nodes:
         fail(f"{config}: nodes: no node named {node!r} (have: {', '.join(site.nodes)})")
