@@ -387,6 +387,10 @@ def test_site_example_describes_a_wave_energy_site_with_three_edges() -> None:
     assert site.security.tls
     assert site.security.operators
     assert site.hub.data_dir == "/var/lib/fleetdaq/data"
+    dash = site.hub.dashboard
+    assert dash.listen == "0.0.0.0:8443"
+    assert dash.tls is not None
+    assert dash.tls.key_file == "/etc/fleetdaq/pki/hub.key"
     recorder = site.hub.recorder
     assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, 2_000_000_000)
     assert recorder.include != ["*"]

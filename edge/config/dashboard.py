@@ -44,6 +44,18 @@ class FoxgloveConfig(Strict):
     listen: Listen = "127.0.0.1:8765"
 
 
+class DashboardTls(Strict):
+    """HTTPS for the page, its WebSocket and ``/metrics``: logins then do not cross the LAN as
+    typed. The site CA's hub pair serves (``pki_dir``'s ``hub.crt`` and ``hub.key``, made for
+    the ``--hub-name``s browsers use) once ``ca.crt`` is trusted by the browsers; so does a
+    certificate from any CA they already trust."""
+
+    cert_file: str
+    """The certificate (PEM; a chain: the server's first)."""
+    key_file: str
+    """Its private key (PEM, not encrypted); only its owner may read it (``chmod 600``)."""
+
+
 class DashboardConfig(Strict):
     enabled: bool = False
     """Off unless the site file says so: a hub opens no port but its router's without being
@@ -60,4 +72,7 @@ class DashboardConfig(Strict):
     """A login lasts this long without use (it is renewed by use)."""
     metrics: bool = True
     """Serve Prometheus ``/metrics`` (never needs a login: a scraper has none)."""
+    tls: DashboardTls | None = None
+    """Serve HTTPS instead of HTTP (see `DashboardTls`). Without it, expose the page beyond
+    this machine only behind a TLS reverse proxy."""
     foxglove: FoxgloveConfig = FoxgloveConfig()

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import ssl
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -21,8 +22,9 @@ from pathlib import Path
 from aiohttp import web
 
 from edge.config.site import SiteConfig
+from edge.security import SecretFileError, check_private_file
 from edge.threads import NamedThread, name_os_thread
-from hub.errors import HubError
+from hub.errors import HubError, SecretError
 from hub.web.api import MAX_BODY, Api, middlewares
 from hub.web.auth import Auth
 from hub.web.events import EventTail
@@ -88,11 +90,41 @@ class WebService:
         self._error: BaseException | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._running = False
+        self._ssl: ssl.SSLContext | None = None
 
     @property
     def url(self) -> str:
-        """The page's address (``http://127.0.0.1:8080/``), with the port actually bound."""
-        return f"http://{url_host(self.host)}:{self.bound_port or self.port}/"
+        """The page's address (``http://127.0.0.1:8080/``, ``https://`` with `tls`), with the
+        port actually bound."""
+        scheme = "https" if self.cfg.tls is not None else "http"
+        return f"{scheme}://{url_host(self.host)}:{self.bound_port or self.port}/"
+
+    def _tls_context(self) -> ssl.SSLContext | None:
+        """The server's TLS context for `hub.dashboard.tls`; a missing or unusable file is one
+        line (SecretError) naming it."""
+        tls = self.cfg.tls
+        if tls is None:
+            return None
+        cert, key = Path(tls.cert_file), Path(tls.key_file)
+        where = "hub.dashboard.tls"
+        if not cert.is_file():
+            raise SecretError(f"{where}.cert_file {cert}: no such file")
+        try:
+            check_private_file(key, f"{where}.key_file")
+        except SecretFileError as err:
+            raise SecretError(str(err)) from None
+
+        def no_passphrase() -> bytes:  # never OpenSSL's prompt on a service's terminal
+            raise SecretError(f"{where}.key_file {key}: the key is encrypted; give it unencrypted")
+
+        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+        try:
+            ctx.load_cert_chain(cert, key, password=no_passphrase)
+        except (ssl.SSLError, OSError) as err:
+            why = getattr(err, "reason", None) or err.strerror or str(err)
+            raise SecretError(f"{where}: cannot serve {cert} with the key {key}: {why}") from None
+        return ctx
 
     # --- lifecycle ----------------------------------------------------------------------------
 
@@ -100,6 +132,7 @@ class WebService:
         if self._running:
             return
         self.users.check()
+        self._ssl = self._tls_context()
         self._pool = ThreadPoolExecutor(
             4, thread_name_prefix="dash-work", initializer=name_os_thread
         )
@@ -178,7 +211,7 @@ class WebService:
         runner = web.AppRunner(app, access_log=None, shutdown_timeout=5.0)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, self.host, self.port, backlog=128)
+            site = web.TCPSite(runner, self.host, self.port, backlog=128, ssl_context=self._ssl)
             await site.start()
             self.bound_port = int(runner.addresses[0][1])
             live.start()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import ssl
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ hub:
     listen: 127.0.0.1:0
     users_file: {users}
     open_view: {open_view}
-    metrics: {metrics}
+    metrics: {metrics}{tls}
 nodes:
   wec:
     streams:
@@ -81,10 +82,15 @@ class Http:
     csrf: str = ""
     origin: str | None = None
     last_headers: dict[str, str] = field(default_factory=dict)
+    tls: ssl.SSLContext | None = None
+    """HTTPS, trusting what this context trusts."""
+    set_cookie: str = ""
+    """The last session cookie as the server set it, with its attributes."""
 
     def __post_init__(self) -> None:
         if self.origin is None:
-            self.origin = f"http://127.0.0.1:{self.port}"
+            scheme = "https" if self.tls is not None else "http"
+            self.origin = f"{scheme}://127.0.0.1:{self.port}"
 
     def request(
         self,
@@ -94,7 +100,11 @@ class Http:
         headers: dict[str, str] | None = None,
         raw: bytes | None = None,
     ) -> tuple[int, Any]:
-        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=20)
+        conn: http.client.HTTPConnection = (
+            http.client.HTTPSConnection("127.0.0.1", self.port, timeout=20, context=self.tls)
+            if self.tls is not None
+            else http.client.HTTPConnection("127.0.0.1", self.port, timeout=20)
+        )
         h = {"Content-Type": "application/json"} if (body is not None or raw is not None) else {}
         if self.origin and method == "POST":
             h["Origin"] = self.origin
@@ -110,6 +120,7 @@ class Http:
         self.last_headers = {k.lower(): v for k, v in r.getheaders()}
         cookie = r.getheader("Set-Cookie")
         if cookie and "fleetdaq_session=" in cookie:
+            self.set_cookie = cookie
             value = cookie.split(";", 1)[0]
             self.cookie = "" if value.endswith("=") or '=""' in value else value
         conn.close()
@@ -175,11 +186,17 @@ def write_cheap_users(path: Path, passwords: dict[str, str]) -> None:
 def make_web(tmp_path: Path) -> Iterator[Callable[..., Web]]:
     started: list[tuple[WebService, EventBus, LivePlots]] = []
 
-    def make(open_view: bool = True, metrics: bool = True) -> Web:
+    def make(
+        open_view: bool = True, metrics: bool = True, tls: tuple[Path, Path] | None = None
+    ) -> Web:
+        """`tls`: serve HTTPS with this certificate and key."""
         users = tmp_path / "users"
         write_cheap_users(users, PASSWORDS)
         text = SITE.format(
-            users=users, open_view=str(open_view).lower(), metrics=str(metrics).lower()
+            users=users,
+            open_view=str(open_view).lower(),
+            metrics=str(metrics).lower(),
+            tls=f"\n    tls: {{cert_file: {tls[0]}, key_file: {tls[1]}}}" if tls else "",
         )
         site = parse_config(text, "<t>")
         bus = EventBus()

@@ -265,7 +265,8 @@ def _site_with(web: Web, cfg: Any) -> Any:
     from edge.config.load import parse_config
     from tests.web.conftest import SITE
 
-    site = parse_config(SITE.format(users=web.users_file, open_view="true", metrics="true"), "<t>")
+    text = SITE.format(users=web.users_file, open_view="true", metrics="true", tls="")
+    site = parse_config(text, "<t>")
     return site.model_copy(update={"hub": site.hub.model_copy(update={"dashboard": cfg})})
 
 
