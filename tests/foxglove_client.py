@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import ssl
 import struct
 import threading
 import time
@@ -44,9 +45,14 @@ class Received:
 
 class FoxgloveClient:
     def __init__(
-        self, url: str, subprotocols: tuple[str, ...] = LICHTBLICK_SUBPROTOCOLS, timeout: float = 20
+        self,
+        url: str,
+        subprotocols: tuple[str, ...] = LICHTBLICK_SUBPROTOCOLS,
+        timeout: float = 20,
+        tls: ssl.SSLContext | None = None,
     ) -> None:
         self.url = url
+        self.tls = tls
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[int, dict[str, Any]] = {}
         self.statuses: list[dict[str, Any]] = []
@@ -77,7 +83,11 @@ class FoxgloveClient:
     async def _connect(self, subprotocols: tuple[str, ...]) -> None:
         self._session = aiohttp.ClientSession()
         self._ws = await self._session.ws_connect(
-            self.url, protocols=subprotocols, max_msg_size=64 << 20, autoping=True
+            self.url,
+            protocols=subprotocols,
+            max_msg_size=64 << 20,
+            autoping=True,
+            ssl=self.tls if self.tls is not None else True,
         )
         self.protocol = self._ws.protocol
 

@@ -391,6 +391,7 @@ def test_site_example_describes_a_wave_energy_site_with_three_edges() -> None:
     assert dash.listen == "0.0.0.0:8443"
     assert dash.tls is not None
     assert dash.tls.key_file == "/etc/fleetdaq/pki/hub.key"
+    assert dash.foxglove.tls == dash.tls  # the live view too: wss://
     recorder = site.hub.recorder
     assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, 2_000_000_000)
     assert recorder.include != ["*"]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import numpy as np
 import pytest
 import yaml
@@ -270,6 +271,40 @@ def test_a_taken_port_fails_the_start_with_one_line():
     assert "\n" not in text
     assert f"cannot listen on 127.0.0.1:{port}" in text
     assert "in use" in text
+
+
+def test_wss_with_the_site_cas_hub_pair_and_nothing_in_clear(tmp_path: Path):
+    """`hub.dashboard.foxglove.tls`: what a page loaded over HTTPS may open (wss://), with the
+    site CA's hub pair; a plain ws:// client gets nothing; a loose key is one line at start."""
+    import ssl
+
+    from fleetdaq import pki
+    from hub.errors import SecretError
+
+    folder = tmp_path / "pki"
+    pki.init(folder, "fox", ["127.0.0.1"])
+    port = free_port()
+    tls = f"tls: {{cert_file: {folder / 'hub.crt'}, key_file: {folder / 'hub.key'}}}"
+    text = _site(port).replace(f'listen: "127.0.0.1:{port}"', f'listen: "127.0.0.1:{port}", {tls}')
+    site = parse_config(text, "<test>")
+    service = FoxgloveLive(site, BatchFeed(), EventBus(), lambda: ReadModel("fox").snapshot())
+    service.start()
+    try:
+        assert service.url == f"wss://127.0.0.1:{port}"
+        trusting = ssl.create_default_context(cafile=str(folder / "ca.crt"))
+        with FoxgloveClient(service.url, tls=trusting) as client:
+            client.wait(lambda: "/wec/t8" in client.topics(), 10, "the advertise over TLS")
+        with pytest.raises(aiohttp.ClientError):  # refused or reset: either way nothing
+            FoxgloveClient(f"ws://127.0.0.1:{port}", timeout=10)
+    finally:
+        service.stop()
+    (folder / "hub.key").chmod(0o644)
+    service = FoxgloveLive(site, BatchFeed(), EventBus(), lambda: ReadModel("fox").snapshot())
+    with pytest.raises(SecretError) as err:
+        service.start()
+    service.stop()
+    assert str(err.value).startswith(f"hub.dashboard.foxglove.tls.key_file {folder / 'hub.key'}")
+    assert "chmod 600" in str(err.value)
 
 
 # --- the demo site, live, as Foxglove sees it ----------------------------------------------------

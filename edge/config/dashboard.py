@@ -36,17 +36,9 @@ def check_listen(value: str) -> str:
 Listen = Annotated[str, AfterValidator(check_listen)]
 
 
-class FoxgloveConfig(Strict):
-    """Foxglove (or Lichtblick) connects here with "Foxglove WebSocket" and sees every stream,
-    the events, the alarms and the nodes' health live."""
-
-    enabled: bool = False
-    listen: Listen = "127.0.0.1:8765"
-
-
-class DashboardTls(Strict):
-    """HTTPS for the page, its WebSocket and ``/metrics``: logins then do not cross the LAN as
-    typed. The site CA's hub pair serves (``pki_dir``'s ``hub.crt`` and ``hub.key``, made for
+class ServerTls(Strict):
+    """TLS for a server the hub runs for people (the dashboard: HTTPS; the Foxglove live view:
+    WSS). The site CA's hub pair serves (``pki_dir``'s ``hub.crt`` and ``hub.key``, made for
     the ``--hub-name``s browsers use) once ``ca.crt`` is trusted by the browsers; so does a
     certificate from any CA they already trust."""
 
@@ -54,6 +46,16 @@ class DashboardTls(Strict):
     """The certificate (PEM; a chain: the server's first)."""
     key_file: str
     """Its private key (PEM, not encrypted); only its owner may read it (``chmod 600``)."""
+
+
+class FoxgloveConfig(Strict):
+    """Foxglove (or Lichtblick) connects here with "Foxglove WebSocket" and sees every stream,
+    the events, the alarms and the nodes' health live."""
+
+    enabled: bool = False
+    listen: Listen = "127.0.0.1:8765"
+    tls: ServerTls | None = None
+    """Serve ``wss://`` (what a page loaded over HTTPS may open) instead of ``ws://``."""
 
 
 class DashboardConfig(Strict):
@@ -72,7 +74,7 @@ class DashboardConfig(Strict):
     """A login lasts this long without use (it is renewed by use)."""
     metrics: bool = True
     """Serve Prometheus ``/metrics`` (never needs a login: a scraper has none)."""
-    tls: DashboardTls | None = None
-    """Serve HTTPS instead of HTTP (see `DashboardTls`). Without it, expose the page beyond
+    tls: ServerTls | None = None
+    """Serve HTTPS instead of HTTP (see `ServerTls`). Without it, expose the page beyond
     this machine only behind a TLS reverse proxy."""
     foxglove: FoxgloveConfig = FoxgloveConfig()

@@ -32,6 +32,7 @@ from edge.config.site import SiteConfig
 from edge.messages import Event
 from edge.threads import NamedThread
 from edge.wire import batch_values, plausible_time
+from hub import server_tls
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.errors import HubError
@@ -139,6 +140,8 @@ class FoxgloveLive:
                 "or set hub.dashboard.foxglove.enabled: false"
             ) from err
         _route_sdk_logs()
+        tls = self.site.hub.dashboard.foxglove.tls
+        pair = server_tls.load(tls, "hub.dashboard.foxglove.tls") if tls else None
         # Held for the service's life: the channels and the server are bound through it, and
         # the SDK lets go of them (nothing advertised) once the Python object is gone.
         self._context = context = foxglove.Context()
@@ -156,6 +159,8 @@ class FoxgloveLive:
                 capabilities=[Capability.Time],
                 server_listener=cast("ServerListener", _Listener(self)),
                 context=context,
+                tls_cert=pair.cert_pem if pair else None,
+                tls_key=pair.key_pem if pair else None,
             )
         except RuntimeError as err:
             self._close_channels()
@@ -171,11 +176,13 @@ class FoxgloveLive:
 
     @property
     def url(self) -> str:
-        """``ws://HOST:PORT`` as bound (port 0 in the site file: the one the system gave)."""
+        """``ws://HOST:PORT`` (``wss://`` with `tls`) as bound (port 0 in the site file: the
+        one the system gave)."""
         host, port = split_listen(self.listen)
         if self._server is not None:
             port = int(self._server.port)
-        return f"ws://{host}:{port}"
+        scheme = "wss" if self.site.hub.dashboard.foxglove.tls else "ws"
+        return f"{scheme}://{host}:{port}"
 
     def stop(self) -> None:
         if self._running:

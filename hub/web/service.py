@@ -22,9 +22,9 @@ from pathlib import Path
 from aiohttp import web
 
 from edge.config.site import SiteConfig
-from edge.security import SecretFileError, check_private_file
 from edge.threads import NamedThread, name_os_thread
-from hub.errors import HubError, SecretError
+from hub import server_tls
+from hub.errors import HubError
 from hub.web.api import MAX_BODY, Api, middlewares
 from hub.web.auth import Auth
 from hub.web.events import EventTail
@@ -99,40 +99,14 @@ class WebService:
         scheme = "https" if self.cfg.tls is not None else "http"
         return f"{scheme}://{url_host(self.host)}:{self.bound_port or self.port}/"
 
-    def _tls_context(self) -> ssl.SSLContext | None:
-        """The server's TLS context for `hub.dashboard.tls`; a missing or unusable file is one
-        line (SecretError) naming it."""
-        tls = self.cfg.tls
-        if tls is None:
-            return None
-        cert, key = Path(tls.cert_file), Path(tls.key_file)
-        where = "hub.dashboard.tls"
-        if not cert.is_file():
-            raise SecretError(f"{where}.cert_file {cert}: no such file")
-        try:
-            check_private_file(key, f"{where}.key_file")
-        except SecretFileError as err:
-            raise SecretError(str(err)) from None
-
-        def no_passphrase() -> bytes:  # never OpenSSL's prompt on a service's terminal
-            raise SecretError(f"{where}.key_file {key}: the key is encrypted; give it unencrypted")
-
-        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-        ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-        try:
-            ctx.load_cert_chain(cert, key, password=no_passphrase)
-        except (ssl.SSLError, OSError) as err:
-            why = getattr(err, "reason", None) or err.strerror or str(err)
-            raise SecretError(f"{where}: cannot serve {cert} with the key {key}: {why}") from None
-        return ctx
-
     # --- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> None:
         if self._running:
             return
         self.users.check()
-        self._ssl = self._tls_context()
+        tls = self.cfg.tls
+        self._ssl = server_tls.load(tls, "hub.dashboard.tls").context if tls else None
         self._pool = ThreadPoolExecutor(
             4, thread_name_prefix="dash-work", initializer=name_os_thread
         )
