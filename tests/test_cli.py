@@ -10,7 +10,9 @@ import subprocess
 import sys
 import time
 from collections import deque
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -82,6 +84,33 @@ def start_demo(site: Path, rec: Path) -> subprocess.Popen[str]:
     )
 
 
+@contextlib.contextmanager
+def demo_and_its_edges(
+    site: Path, rec: Path, recording: bool = False
+) -> Iterator[tuple[subprocess.Popen[str], list[Any]]]:
+    """The demo (`start_demo`) once it has started its two edges (with `recording`: and its
+    first file), and their psutil processes; on the way out none of them is left running."""
+    import psutil
+
+    p = start_demo(site, rec)
+    edges: list[psutil.Process] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(edges) < 2 or (recording and not list(rec.glob("*/*.mcap" + ACTIVE_SUFFIX))):
+            assert p.poll() is None, p.communicate()[1][-3000:]
+            assert time.monotonic() < deadline, "the demo never started its edges (or recording)"
+            edges = [c for c in psutil.Process(p.pid).children() if "edge" in " ".join(c.cmdline())]
+            time.sleep(0.01)
+        yield p, edges
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        for e in edges:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                e.kill()
+
+
 def test_ctrl_c_stops_the_demo_cleanly_with_every_file_closed(site: Path, tmp_path: Path):
     rec = tmp_path / "rec"
     p = start_demo(site, rec)
@@ -119,28 +148,13 @@ def test_a_ctrl_c_or_hangup_while_the_edges_start_stops_everything_cleanly(
     import psutil
 
     rec = tmp_path / "rec"
-    p = start_demo(site, rec)
-    edges: list[psutil.Process] = []
-    try:
-        deadline = time.monotonic() + 60
-        while len(edges) < 2:
-            assert p.poll() is None, p.communicate()[1][-3000:]
-            assert time.monotonic() < deadline, "the demo never started its edges"
-            edges = [c for c in psutil.Process(p.pid).children() if "edge" in " ".join(c.cmdline())]
-            time.sleep(0.01)
+    with demo_and_its_edges(site, rec) as (p, edges):
         import os
 
         os.killpg(p.pid, sig)
         _, err = p.communicate(timeout=60)
         _, alive = psutil.wait_procs(edges, timeout=10)
         assert alive == [], "edges left running after the demo ended"
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-        for e in edges:
-            with contextlib.suppress(psutil.NoSuchProcess):
-                e.kill()
     (session,) = [d for d in rec.iterdir() if d.is_dir() and d.name != "spool"]
     logs = {f.name: f.read_text()[-2000:] for f in (session / "logs").glob("*.log")}
     assert p.returncode == 0, (err[-3000:], logs)
@@ -155,26 +169,11 @@ def test_a_demo_killed_outright_leaves_no_edge_running(site: Path, tmp_path: Pat
     import psutil
 
     rec = tmp_path / "rec"
-    p = start_demo(site, rec)
-    edges: list[psutil.Process] = []
-    try:
-        deadline = time.monotonic() + 60
-        while not list(rec.glob("*/*.mcap" + ACTIVE_SUFFIX)) or len(edges) < 2:
-            assert p.poll() is None, p.communicate()[1][-3000:]
-            assert time.monotonic() < deadline, "the demo never started recording"
-            edges = [c for c in psutil.Process(p.pid).children() if "edge" in " ".join(c.cmdline())]
-            time.sleep(0.05)
+    with demo_and_its_edges(site, rec, recording=True) as (p, edges):
         p.kill()
         p.communicate(timeout=30)
         _, alive = psutil.wait_procs(edges, timeout=30)
         assert alive == [], "edges left running after the demo was killed"
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-        for e in edges:
-            with contextlib.suppress(psutil.NoSuchProcess):
-                e.kill()
     (session,) = [d for d in rec.iterdir() if d.is_dir() and d.name != "spool"]
     logs = {f.name: f.read_text()[-2000:] for f in (session / "logs").glob("*.log")}
     assert len(logs) == len(edges), logs
