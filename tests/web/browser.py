@@ -25,12 +25,13 @@ CHROMIUM = "/usr/bin/chromium"
 UNACKED = re.compile(r"^(active|returned) unacked$")
 
 
-def launch(p: Any) -> Browser:
-    browser: Browser = p.chromium.launch(
-        executable_path=CHROMIUM,
-        headless=True,
-        args=["--no-sandbox", "--disable-background-networking", "--no-first-run"],
-    )
+def launch(p: Any, trust_spki: str | None = None) -> Browser:
+    """Chromium; `trust_spki` (base64 SHA-256 of a certificate's public key) is trusted for
+    HTTPS as if its CA were installed: that key only, every other check still made."""
+    args = ["--no-sandbox", "--disable-background-networking", "--no-first-run"]
+    if trust_spki:
+        args.append(f"--ignore-certificate-errors-spki-list={trust_spki}")
+    browser: Browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
     return browser
 
 
@@ -285,9 +286,12 @@ def outputs(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
     """Set an output from the page, with its confirmation, and read the edge's answer."""
     url, output, value = args["url"], args["output"], args["value"]
     with sync_playwright() as p:
-        browser = launch(p)
+        browser = launch(p, args.get("trust_spki"))
         page = browser.new_page(viewport={"width": 1600, "height": 1200})
         page.set_default_timeout(30_000)
+        sockets: list[str] = []
+        page.on("websocket", lambda ws: sockets.append(ws.url))
+        result["websockets"] = sockets
         page.goto(url)
         page.get_by_role("status", name="Connection").filter(has_text="live").wait_for()
         wait_rows(page, "Outputs", lambda r: any(x[0] == output for x in r), f"output {output}")
@@ -307,6 +311,9 @@ def outputs(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
             lambda r: any(x[0] == output and x[2].startswith(f"{value:g}") for x in r),
             f"the readback of {output} at {value}",
         )
+        result["cookies"] = [
+            {k: c.get(k) for k in ("name", "secure", "httpOnly")} for c in page.context.cookies()
+        ]
         page.screenshot(path=str(out / "outputs.png"), full_page=True)
         browser.close()
 

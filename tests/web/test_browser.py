@@ -8,6 +8,8 @@ Screenshots: ``tests/web/output/`` (not committed).
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import re
 import shutil
@@ -244,7 +246,11 @@ site: webout
 hub:
   listen: [tcp/127.0.0.1:7447]
   recorder: {{file_duration_s: 60}}
-  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
+  dashboard:
+    enabled: true
+    listen: "127.0.0.1:8080"
+    users_file: {users}
+    tls: {{cert_file: {pki}/hub.crt, key_file: {pki}/hub.key}}
 nodes:
   rig:
     streams:
@@ -263,10 +269,27 @@ nodes:
 """
 
 
+def _spki_sha256(cert: Path) -> str:
+    """What Chromium's --ignore-certificate-errors-spki-list takes for this certificate."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    key = x509.load_pem_x509_certificate(cert.read_bytes()).public_key()
+    der = key.public_bytes(
+        serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+    return base64.b64encode(hashlib.sha256(der).digest()).decode()
+
+
 def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
     tmp_path: Path,
 ):
+    """Over HTTPS (`hub.dashboard.tls`, the site CA's hub pair, as the example site): the
+    page, its login (a Secure cookie), its live WebSocket (wss) and an action."""
     needs_a_namespace()
+    from fleetdaq import pki
+
+    pki.init(tmp_path / "pki", "webout", ["127.0.0.1"])
     data, users = tmp_path / "data", tmp_path / "users"
     added = subprocess.run(
         [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
@@ -275,7 +298,7 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
     )  # fmt: skip
     assert added.returncode == 0, added.stderr
     site = tmp_path / "site.yaml"
-    site.write_text(OUTPUT_SITE.format(users=users))
+    site.write_text(OUTPUT_SITE.format(users=users, pki=tmp_path / "pki"))
     checked = subprocess.run(
         [sys.executable, "-m", "fleetdaq", "check", str(site)],
         capture_output=True, text=True, cwd=REPO, check=False,
@@ -292,7 +315,7 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
             tmp_path / "edge.log",
         )  # fmt: skip
         wait_until(
-            lambda: "dashboard on http://127.0.0.1:8080/" in hub.output() or hub.popen.poll(),
+            lambda: "dashboard on https://127.0.0.1:8080/" in hub.output() or hub.popen.poll(),
             60,
             "the hub's dashboard",
         )
@@ -301,13 +324,16 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
             ns,
             tmp_path,
             "outputs",
-            {"url": "http://127.0.0.1:8080/", "user": USER, "password": PASSWORD,
-             "output": "rig/valve", "value": 1.5},
+            {"url": "https://127.0.0.1:8080/", "user": USER, "password": PASSWORD,
+             "output": "rig/valve", "value": 1.5,
+             "trust_spki": _spki_sha256(tmp_path / "pki" / "hub.crt")},
         )  # fmt: skip
         assert edge.terminate(30) == 0, edge.output()[-3000:]
         assert hub.terminate(30) == 0, hub.output()[-3000:]
         assert ns.close() == []
     assert result["ok"], result.get("error")
     assert "applied" in result["toast"]
+    assert set(result["websockets"]) == {"wss://127.0.0.1:8080/api/live"}  # again after login
+    assert result["cookies"] == [{"name": "fleetdaq_session", "secure": True, "httpOnly": True}]
     events = (data / "events.log").read_text()
     assert re.search(rf"rig/valve: set 1\.5 applied.*by operator {USER}@127\.0\.0\.1", events)
