@@ -85,15 +85,47 @@ class LivePlots:
                 )
         self._lock = threading.Lock()
         self._on_write: Callable[[], None] | None = None
-        self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
+        self._consumers = [feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)]
+        self._on_demand: Callable[[frozenset[str]], None] | None = None
+        self._demanded: frozenset[str] = frozenset()
+
+    def add_feed(self, feed: BatchFeed, name: str) -> None:
+        """Also take the batches of `feed` (before `start`): a partition's streams, which the
+        main hub's recorder never sees (`hub.partition_live`)."""
+        self._consumers.append(feed.subscribe(name, self._on_batch, max_bytes=64 << 20))
 
     def start(self) -> None:
         plot_kernels.warm_up(self._cache_dir)  # numpy until it is compiled
-        self._consumer.start()
+        for c in self._consumers:
+            c.start()
 
     def stop(self) -> None:
-        self._consumer.stop()
+        for c in self._consumers:
+            c.stop()
         plot_kernels.settle(30.0)  # a compile still running is not left inside LLVM at exit
+
+    def forget_latest(self, node: str, stream: str) -> None:
+        """Show no latest values for a stream whose batches stop coming on purpose (a
+        partition's stream nobody plots any more) rather than frozen ones."""
+        ring = self._rings.get((node, stream))
+        if ring is not None:
+            with self._lock:
+                ring.latest = np.full(len(ring.channels), np.nan)
+
+    def on_demand(self, callback: Callable[[frozenset[str]], None] | None) -> None:
+        """Call `callback` with the ``node/stream`` names somebody plots whenever they change
+        (a partition's streams are fetched across the mesh only then)."""
+        self._on_demand = callback
+
+    def demand(self, streams: frozenset[str]) -> None:
+        """The streams the live plots' viewers follow now (the dashboard says so each time it
+        computes frames; only a change is passed on)."""
+        if streams == self._demanded:
+            return
+        self._demanded = streams
+        callback = self._on_demand
+        if callback is not None:
+            callback(streams)
 
     def failure(self) -> str | None:
         return None

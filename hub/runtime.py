@@ -43,6 +43,7 @@ from hub.live_plots import LivePlots
 from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
 from hub.partition import PartitionWatch
+from hub.partition_live import PartitionLive
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
@@ -156,6 +157,12 @@ class HubRuntime:
             if live_plots or site.hub.dashboard.enabled
             else None
         )
+        # A partition's streams: fetched across the mesh only while somebody plots them.
+        self.partition_live = (
+            PartitionLive(self.router, site, self.live_plots)
+            if self.live_plots is not None and site.hub.partitions
+            else None
+        )
         self.recorder_requests = RecorderRequests(
             self.router,
             self.keys,
@@ -198,6 +205,7 @@ class HubRuntime:
                 self.hub_health,
                 *([self.snapshots] if self.snapshots is not None else []),
                 *([self.live_plots] if self.live_plots is not None else []),
+                *([self.partition_live] if self.partition_live is not None else []),
                 self.supervisor,
                 self.alarm_requests,
                 self.commands,

@@ -282,3 +282,103 @@ def test_an_unknown_partition_on_the_command_line_is_one_line_and_exit_2():
         "--partition: tests/data/config/good_partitions.yaml has no partition 'bay3' in "
         "hub.partitions (bay2)"
     ]
+
+
+def test_the_main_hubs_dashboard_plots_a_partition_stream_only_while_somebody_plots_it(
+    tmp_path: Path,
+):
+    """The partition's batches never cross the mesh to the main hub, except while a viewer of
+    the main hub's dashboard plots one of its streams: then they come, are drawn, and are not
+    recorded by the main hub; when the viewer leaves, they stop coming."""
+    import asyncio
+    import re
+    import urllib.request
+
+    import aiohttp
+    import numpy as np
+
+    from hub.web import frames
+
+    main_port, bay2_port = free_port(), free_port()
+    nodes = "".join(NODE.format(name=n) for n in ("wec-a", "cell-a"))
+    dash = (
+        f'  dashboard: {{enabled: true, listen: "127.0.0.1:0", users_file: {tmp_path / "users"}}}\n'
+    )
+    text = SITE.format(main=main_port, bay2=bay2_port, nodes=nodes)
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(text.replace("  partitions:\n", dash + "  partitions:\n"))
+    rig = Rig(tmp_path, cfg, main_port)
+    try:
+        main = rig.main_hub()
+        rig.bay2_hub()
+        rig.edge("wec-a")
+        rig.edge("cell-a")
+        m = wait_until(
+            lambda: re.search(r"dashboard on (http://\S+)", main.output()), 60, "the dashboard"
+        )
+        url = m.group(1)
+        wait_until(
+            lambda: (stream_view(rig.client.status() or {}, "cell-a", "wave") or {}).get("batches"),
+            60,
+            "cell-a's batches recorded by bay2",
+        )
+        plot = json.dumps(
+            {"type": "plots", "plots": [
+                {"id": "p", "stream": "cell-a/wave", "channels": ["c0", "c1"], "width": 200,
+                 "span_s": 5}]}
+        )  # fmt: skip
+
+        async def view() -> np.ndarray:
+            assembled = frames.Assembler()
+            async with (
+                aiohttp.ClientSession() as s,
+                s.ws_connect(url.replace("http", "ws") + "api/live") as ws,
+            ):
+                await ws.send_str(plot)
+                deadline = time.monotonic() + 60
+                hostile_at: int | None = None
+                frames_seen = 0
+                while time.monotonic() < deadline:
+                    msg = await asyncio.wait_for(ws.receive(), 20)
+                    if msg.type != aiohttp.WSMsgType.BINARY:
+                        continue
+                    assert assembled.apply(msg.data), "every frame applies to the one before"
+                    assert assembled.minmax is not None
+                    frames_seen += 1
+                    if hostile_at is None and np.isfinite(assembled.minmax).sum() >= 2 * 2 * 50:
+                        # Garbage on the stream's key while it is followed: dropped, counted,
+                        # and the plot goes on.
+                        rig.client.session.put(SiteKeys("parts").data("cell-a", "wave"), b"junk")
+                        hostile_at = frames_seen
+                    if hostile_at is not None and frames_seen >= hostile_at + 5:
+                        return assembled.minmax
+                raise AssertionError("no data of cell-a/wave drawn within 60 s")
+
+        drawn = asyncio.run(view())
+        assert np.isfinite(drawn).all(axis=(0, 1)).sum() >= 50, "both channels, 50+ columns"
+        assert "live plot of cell-a/wave: following it across the mesh" in main.output()
+        assert "live plot of cell-a/wave: a malformed batch, dropped (1 so far)" in main.output()
+        wait_until(
+            lambda: "cell-a/wave: nobody plots it, no longer followed" in main.output(),
+            30,
+            "the main hub to let go of cell-a/wave once the viewer left",
+        )
+
+        def latest() -> list[Any]:
+            with urllib.request.urlopen(url + "api/streams", timeout=10) as r:
+                got: list[Any] = json.loads(r.read())["streams"]["cell-a/wave"]["latest"]
+            return got
+
+        # No frozen values once nobody follows it (the partition's report still says its age).
+        wait_until(lambda: latest() == [None, None], 10, "cell-a/wave's values withdrawn")
+        for proc in rig.procs[2:]:  # the edges, then the main hub: every file closed
+            assert proc.terminate(30) == 0, proc.output()[-3000:]
+        assert main.terminate(30) == 0, main.output()[-3000:]
+    finally:
+        for p in rig.procs:
+            p.kill()
+        if rig._client is not None:
+            rig._client.close()
+    recorded = _recorded(tmp_path / "main")
+    assert any("wec" in topic for topic in recorded), recorded
+    assert not any("cell" in topic for topic in recorded), "the main hub records its slice only"

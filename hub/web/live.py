@@ -285,6 +285,7 @@ class Live:
         finally:
             self.clients.discard(client)
             self.stats.ws_clients = len(self.clients)
+            self._new_data.set()  # what is plotted changed: the next tick says so
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await sender
@@ -421,6 +422,7 @@ class Live:
         for key in [k for k in followed if k not in keys]:
             del followed[key]  # nobody plots it any more
         self._listen(bool(keys))
+        self.parts.live_plots.demand(frozenset(p.stream for _, p in wanted))
         updated: set[PlotKey] = set()
         for c, p in wanted:
             f = followed.get(p.key)

@@ -47,6 +47,8 @@ class Plots(Protocol):
 
     def on_write(self, callback: Callable[[], None] | None) -> None: ...
 
+    def demand(self, streams: frozenset[str]) -> None: ...
+
 
 @dataclass(frozen=True, slots=True)
 class HubParts:

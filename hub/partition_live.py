@@ -1,0 +1,137 @@
+"""Live plots of a partition's streams on the main hub, while somebody plots them.
+
+A partition hub records its own nodes; their batches never cross the mesh to the main hub
+(`hub.partition`), so the main hub's dashboard would list those streams without ever being
+able to draw them. This service subscribes to a partition node's stream across the mesh only
+while a dashboard viewer plots it (`LivePlots.demand`), and hands its batches to the live
+plots alone: never to the recorder, the acks, the alarms or the snapshot buffer, which stay
+the partition hub's. When the last viewer of the stream leaves, the subscription goes and the
+batches stay on the partition's side of the mesh again.
+
+Everything that arrives is checked in full like the recorder's input (`BatchDecoder`): a
+payload that is not a well-formed batch of that stream, or that names another stream than its
+key, is counted (`malformed`) and dropped, never plotted and never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from edge.config.site import SiteConfig
+from edge.errors import WireError
+from edge.keys import SiteKeys
+from edge.wire import BatchDecoder, SampleFormat
+from hub.batch_feed import BatchFeed, FedBatch
+from hub.live_plots import LivePlots
+from hub.router import Router
+
+log = logging.getLogger("fleetdaq.partition_live")
+
+
+class _Remote:
+    """One partition stream the main hub may plot."""
+
+    def __init__(self, node: str, stream: str, sample_format: SampleFormat) -> None:
+        self.node = node
+        self.stream = stream
+        self.sample_format = sample_format
+        self.decoder = BatchDecoder()
+        self.lock = threading.Lock()  # Zenoh may call back from more than one thread
+        self.last_sequence: int | None = None
+        self.sub: Any = None
+
+
+class PartitionLive:
+    name = "partition-live"
+
+    def __init__(self, router: Router, site: SiteConfig, live_plots: LivePlots) -> None:
+        self.router = router
+        self.keys = SiteKeys(site.site)
+        self.feed = BatchFeed()
+        self._remotes: dict[str, _Remote] = {}
+        for part in site.hub.partitions:
+            for node in site.nodes_of(part):
+                for stream, cfg in site.nodes[node].streams.items():
+                    self._remotes[f"{node}/{stream}"] = _Remote(node, stream, cfg.sample_format)
+        self._lock = threading.Lock()
+        self._running = False
+        self.batches = 0
+        self.malformed = 0
+        self.live_plots = live_plots
+        live_plots.add_feed(self.feed, "live-plots-partitions")
+        live_plots.on_demand(self.want)
+
+    @property
+    def following(self) -> list[str]:
+        """The partition streams subscribed to now."""
+        with self._lock:
+            return sorted(k for k, r in self._remotes.items() if r.sub is not None)
+
+    def start(self) -> None:
+        with self._lock:
+            self._running = True
+
+    def stop(self) -> None:
+        with self._lock:
+            self._running = False
+            for r in self._remotes.values():
+                self._drop(r)
+                self.live_plots.forget_latest(r.node, r.stream)
+
+    def failure(self) -> str | None:
+        return None
+
+    def want(self, streams: frozenset[str]) -> None:
+        """Follow exactly the partition streams among `streams` (any thread)."""
+        with self._lock:
+            if not self._running:
+                return
+            for key, r in self._remotes.items():
+                if key in streams and r.sub is None:
+                    r.last_sequence = None
+                    r.sub = self.router.session.declare_subscriber(
+                        self.keys.data(r.node, r.stream), self._handler(r)
+                    )
+                    log.info("live plot of %s: following it across the mesh", key)
+                elif key not in streams and r.sub is not None:
+                    self._drop(r)
+                    self.live_plots.forget_latest(r.node, r.stream)
+                    log.info("live plot of %s: nobody plots it, no longer followed", key)
+
+    @staticmethod
+    def _drop(r: _Remote) -> None:
+        if r.sub is not None:
+            sub, r.sub = r.sub, None
+            try:
+                sub.undeclare()
+            except Exception as err:  # the session closed first: nothing left to undeclare
+                log.debug("undeclaring %s/%s: %s", r.node, r.stream, err)
+
+    def _handler(self, r: _Remote) -> Any:
+        def on_data(sample: Any) -> None:
+            recv_ns = time.time_ns()
+            payload = sample.payload.to_bytes()
+            with r.lock:
+                try:
+                    h = r.decoder.read_header(payload, r.sample_format)
+                    if (h.node, h.stream) != (r.node, r.stream):
+                        raise WireError(f"payload says {h.node}/{h.stream}")
+                except WireError as err:
+                    self.malformed += 1
+                    if self.malformed <= 10 or self.malformed % 1000 == 0:
+                        log.warning(
+                            "live plot of %s/%s: a malformed batch, dropped (%d so far): %s",
+                            r.node, r.stream, self.malformed, err,
+                        )  # fmt: skip
+                    return
+                # A replay (the partition's edge catching up) is older than what was drawn.
+                late = r.last_sequence is not None and h.sequence <= r.last_sequence
+                if not late:
+                    r.last_sequence = h.sequence
+            self.batches += 1
+            self.feed.publish(FedBatch(r.node, r.stream, h, payload, recv_ns, late))
+
+        return on_data
