@@ -1,11 +1,12 @@
-"""Live plots of a partition's streams on the main hub, while somebody plots them.
+"""A partition's streams live on the main hub, while somebody looks at them.
 
 A partition hub records its own nodes; their batches never cross the mesh to the main hub
 (`hub.partition`), so the main hub's dashboard would list those streams without ever being
-able to draw them. This service subscribes to a partition node's stream across the mesh only
-while a dashboard viewer plots it (`LivePlots.demand`), and hands its batches to the live
-plots alone: never to the recorder, the acks, the alarms or the snapshot buffer, which stay
-the partition hub's. When the last viewer of the stream leaves, the subscription goes and the
+able to draw them (nor Foxglove show them). This service subscribes to a partition node's
+stream across the mesh only while a dashboard viewer plots it (`LivePlots.demand`) or a
+Foxglove client subscribes to it (`FoxgloveLive.on_demand`), and hands its batches to those
+two alone: never to the recorder, the acks, the alarms or the snapshot buffer, which stay the
+partition hub's. When the last viewer of the stream leaves, the subscription goes and the
 batches stay on the partition's side of the mesh again.
 
 Everything that arrives is checked in full like the recorder's input (`BatchDecoder`): a
@@ -18,6 +19,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from edge.config.site import SiteConfig
@@ -25,6 +27,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.wire import BatchDecoder, SampleFormat
 from hub.batch_feed import BatchFeed, FedBatch
+from hub.foxglove.service import FoxgloveLive
 from hub.live_plots import LivePlots
 from hub.router import Router
 
@@ -47,7 +50,7 @@ class _Remote:
 class PartitionLive:
     name = "partition-live"
 
-    def __init__(self, router: Router, site: SiteConfig, live_plots: LivePlots) -> None:
+    def __init__(self, router: Router, site: SiteConfig) -> None:
         self.router = router
         self.keys = SiteKeys(site.site)
         self.feed = BatchFeed()
@@ -60,9 +63,19 @@ class PartitionLive:
         self._running = False
         self.batches = 0
         self.malformed = 0
-        self.live_plots = live_plots
+        self._wants: dict[str, frozenset[str]] = {}
+        self._withdraw: list[Callable[[str, str], None]] = []
+
+    def serve_plots(self, live_plots: LivePlots) -> None:
+        """The dashboard's live plots: fed while they plot a partition's stream."""
         live_plots.add_feed(self.feed, "live-plots-partitions")
-        live_plots.on_demand(self.want)
+        live_plots.on_demand(lambda streams: self.want("dashboard", streams))
+        self._withdraw.append(live_plots.forget_latest)
+
+    def serve_foxglove(self, foxglove: FoxgloveLive) -> None:
+        """The Foxglove live view: fed while a client subscribes to a partition's stream."""
+        foxglove.add_feed(self.feed, "foxglove-partitions")
+        foxglove.on_demand(lambda streams: self.want("foxglove", streams))
 
     @property
     def following(self) -> list[str]:
@@ -79,27 +92,30 @@ class PartitionLive:
             self._running = False
             for r in self._remotes.values():
                 self._drop(r)
-                self.live_plots.forget_latest(r.node, r.stream)
 
     def failure(self) -> str | None:
         return None
 
-    def want(self, streams: frozenset[str]) -> None:
-        """Follow exactly the partition streams among `streams` (any thread)."""
+    def want(self, viewer: str, streams: frozenset[str]) -> None:
+        """`viewer` (``dashboard``, ``foxglove``) shows exactly `streams` now (any thread):
+        follow the partition streams any viewer shows, and only those."""
         with self._lock:
+            self._wants[viewer] = streams
             if not self._running:
                 return
+            wanted = frozenset().union(*self._wants.values())
             for key, r in self._remotes.items():
-                if key in streams and r.sub is None:
+                if key in wanted and r.sub is None:
                     r.last_sequence = None
                     r.sub = self.router.session.declare_subscriber(
                         self.keys.data(r.node, r.stream), self._handler(r)
                     )
-                    log.info("live plot of %s: following it across the mesh", key)
-                elif key not in streams and r.sub is not None:
+                    log.info("live view of %s: following it across the mesh", key)
+                elif key not in wanted and r.sub is not None:
                     self._drop(r)
-                    self.live_plots.forget_latest(r.node, r.stream)
-                    log.info("live plot of %s: nobody plots it, no longer followed", key)
+                    for withdraw in self._withdraw:
+                        withdraw(r.node, r.stream)
+                    log.info("live view of %s: nobody looks at it, no longer followed", key)
 
     @staticmethod
     def _drop(r: _Remote) -> None:
@@ -123,7 +139,7 @@ class PartitionLive:
                     self.malformed += 1
                     if self.malformed <= 10 or self.malformed % 1000 == 0:
                         log.warning(
-                            "live plot of %s/%s: a malformed batch, dropped (%d so far): %s",
+                            "live view of %s/%s: a malformed batch, dropped (%d so far): %s",
                             r.node, r.stream, self.malformed, err,
                         )  # fmt: skip
                     return

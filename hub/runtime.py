@@ -157,12 +157,6 @@ class HubRuntime:
             if live_plots or site.hub.dashboard.enabled
             else None
         )
-        # A partition's streams: fetched across the mesh only while somebody plots them.
-        self.partition_live = (
-            PartitionLive(self.router, site, self.live_plots)
-            if self.live_plots is not None and site.hub.partitions
-            else None
-        )
         self.recorder_requests = RecorderRequests(
             self.router,
             self.keys,
@@ -192,6 +186,17 @@ class HubRuntime:
         self.partitions = (
             PartitionWatch(self.router, site, self.bus, self.model) if site.hub.partitions else None
         )
+        # A partition's streams: fetched across the mesh only while somebody looks at them.
+        self.partition_live = (
+            PartitionLive(self.router, site)
+            if site.hub.partitions and (self.live_plots is not None or self.foxglove)
+            else None
+        )
+        if self.partition_live is not None:
+            if self.live_plots is not None:
+                self.partition_live.serve_plots(self.live_plots)
+            for fox in self.foxglove:
+                self.partition_live.serve_foxglove(fox)
         self.services = ServiceStack(
             [
                 self.router,

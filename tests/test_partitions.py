@@ -284,12 +284,13 @@ def test_an_unknown_partition_on_the_command_line_is_one_line_and_exit_2():
     ]
 
 
-def test_the_main_hubs_dashboard_plots_a_partition_stream_only_while_somebody_plots_it(
+def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at_it(
     tmp_path: Path,
 ):
     """The partition's batches never cross the mesh to the main hub, except while a viewer of
-    the main hub's dashboard plots one of its streams: then they come, are drawn, and are not
-    recorded by the main hub; when the viewer leaves, they stop coming."""
+    the main hub's dashboard plots one of its streams, or a Foxglove client subscribes to it:
+    then they come, are shown, and are not recorded by the main hub; when the viewer leaves,
+    they stop coming."""
     import asyncio
     import re
     import urllib.request
@@ -298,11 +299,13 @@ def test_the_main_hubs_dashboard_plots_a_partition_stream_only_while_somebody_pl
     import numpy as np
 
     from hub.web import frames
+    from tests.foxglove_client import FoxgloveClient
 
     main_port, bay2_port = free_port(), free_port()
     nodes = "".join(NODE.format(name=n) for n in ("wec-a", "cell-a"))
     dash = (
-        f'  dashboard: {{enabled: true, listen: "127.0.0.1:0", users_file: {tmp_path / "users"}}}\n'
+        f'  dashboard: {{enabled: true, listen: "127.0.0.1:0", users_file: {tmp_path / "users"},'
+        ' foxglove: {enabled: true, listen: "127.0.0.1:0"}}\n'
     )
     text = SITE.format(main=main_port, bay2=bay2_port, nodes=nodes)
     cfg = tmp_path / "site.yaml"
@@ -356,10 +359,10 @@ def test_the_main_hubs_dashboard_plots_a_partition_stream_only_while_somebody_pl
 
         drawn = asyncio.run(view())
         assert np.isfinite(drawn).all(axis=(0, 1)).sum() >= 50, "both channels, 50+ columns"
-        assert "live plot of cell-a/wave: following it across the mesh" in main.output()
-        assert "live plot of cell-a/wave: a malformed batch, dropped (1 so far)" in main.output()
+        assert "live view of cell-a/wave: following it across the mesh" in main.output()
+        assert "live view of cell-a/wave: a malformed batch, dropped (1 so far)" in main.output()
         wait_until(
-            lambda: "cell-a/wave: nobody plots it, no longer followed" in main.output(),
+            lambda: "cell-a/wave: nobody looks at it, no longer followed" in main.output(),
             30,
             "the main hub to let go of cell-a/wave once the viewer left",
         )
@@ -371,6 +374,22 @@ def test_the_main_hubs_dashboard_plots_a_partition_stream_only_while_somebody_pl
 
         # No frozen values once nobody follows it (the partition's report still says its age).
         wait_until(lambda: latest() == [None, None], 10, "cell-a/wave's values withdrawn")
+
+        # Foxglove: the same stream while a client subscribes to it.
+        fox = wait_until(
+            lambda: re.search(r"Foxglove live view on (ws://\S+)", main.output()), 10, "Foxglove"
+        )
+        with FoxgloveClient(fox.group(1)) as client:
+            client.wait(lambda: "/cell-a/wave" in client.topics(), 10, "the advertise")
+            sub = client.subscribe("/cell-a/wave")
+            client.wait(lambda: len(client.messages(sub)) >= 20 or None, 30, "its messages")
+            assert {"c0", "c1"} <= set(client.messages(sub)[-1].json()), "a plottable channel each"
+        wait_until(
+            lambda: main.output().count("cell-a/wave: nobody looks at it, no longer followed") == 2,
+            30,
+            "the main hub to let go of cell-a/wave once the Foxglove client left",
+        )
+        assert main.output().count("live view of cell-a/wave: following it across the mesh") == 2
         for proc in rig.procs[2:]:  # the edges, then the main hub: every file closed
             assert proc.terminate(30) == 0, proc.output()[-3000:]
         assert main.terminate(30) == 0, main.output()[-3000:]

@@ -118,7 +118,11 @@ class FoxgloveLive:
         self._running = False
         self._ticker = NamedThread(target=self._tick, name="foxglove-tick", daemon=True)
         self.counts = {"messages": 0, "batches": 0, "implausible": 0, "mismatched": 0, "errors": 0}
-        self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=FEED_QUEUE_BYTES)
+        self._consumers = [feed.subscribe(self.name, self._on_batch, max_bytes=FEED_QUEUE_BYTES)]
+        self._by_topic = {st.messages.topic: f"{n}/{s}" for (n, s), st in self._streams.items()}
+        self._topic_subs: dict[str, int] = {}
+        self._on_demand: Callable[[frozenset[str]], None] | None = None
+        self._demanded: frozenset[str] = frozenset()
         bus.subscribe(self.name, self._on_event)
 
     @classmethod
@@ -170,7 +174,8 @@ class FoxgloveLive:
                 "(site file: hub.dashboard.foxglove.listen, or enabled: false)"
             ) from err
         self._running = True
-        self._consumer.start()
+        for c in self._consumers:
+            c.start()
         self._ticker.start()
         log.info("Foxglove live view on %s", self.url)
 
@@ -194,7 +199,8 @@ class FoxgloveLive:
         self._stop.set()
         if self._ticker.is_alive():
             self._ticker.join(10)
-        self._consumer.stop()
+        for c in self._consumers:
+            c.stop()
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -206,7 +212,7 @@ class FoxgloveLive:
             return None
         if not self._ticker.is_alive():
             return "its ticker thread (diagnostics, time) died"
-        if not self._consumer.alive:
+        if not all(c.alive for c in self._consumers):
             return "its batch-feed thread died"
         return None
 
@@ -218,9 +224,30 @@ class FoxgloveLive:
             st.channel = None
         self._channels = {}
 
-    def _subscribed(self, delta: int) -> None:
+    def add_feed(self, feed: BatchFeed, name: str) -> None:
+        """Also take the batches of `feed` (before `start`): a partition's streams, fetched
+        across the mesh while a client subscribes to them (`hub.partition_live`)."""
+        self._consumers.append(feed.subscribe(name, self._on_batch, max_bytes=FEED_QUEUE_BYTES))
+
+    def on_demand(self, callback: Callable[[frozenset[str]], None] | None) -> None:
+        """Call `callback` with the ``node/stream`` names clients subscribe to whenever they
+        change."""
+        self._on_demand = callback
+
+    def _subscribed(self, delta: int, topic: str = "") -> None:
         with self._lock:
             self._subscriptions = max(0, self._subscriptions + delta)
+            if topic in self._by_topic:
+                n = self._topic_subs.get(topic, 0) + delta
+                if n > 0:
+                    self._topic_subs[topic] = n
+                else:
+                    self._topic_subs.pop(topic, None)
+            demanded = frozenset(self._by_topic[t] for t in self._topic_subs)
+            changed, self._demanded = demanded != self._demanded, demanded
+        callback = self._on_demand
+        if changed and callback is not None:
+            callback(demanded)
 
     # --- streams (the batch feed's thread) -----------------------------------------------------
 
@@ -310,11 +337,11 @@ class _Listener:
         self.live = live
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
-        self.live._subscribed(+1)
+        self.live._subscribed(+1, str(channel.topic))
         log.debug("Foxglove client %s subscribed to %s", client.id, channel.topic)
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        self.live._subscribed(-1)
+        self.live._subscribed(-1, str(channel.topic))
         log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
 
 
