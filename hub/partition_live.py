@@ -77,15 +77,10 @@ class PartitionLive:
         foxglove.add_feed(self.feed, "foxglove-partitions")
         foxglove.on_demand(lambda streams: self.want("foxglove", streams))
 
-    @property
-    def following(self) -> list[str]:
-        """The partition streams subscribed to now."""
-        with self._lock:
-            return sorted(k for k, r in self._remotes.items() if r.sub is not None)
-
     def start(self) -> None:
         with self._lock:
             self._running = True
+            self._apply()
 
     def stop(self) -> None:
         with self._lock:
@@ -101,21 +96,27 @@ class PartitionLive:
         follow the partition streams any viewer shows, and only those."""
         with self._lock:
             self._wants[viewer] = streams
-            if not self._running:
-                return
-            wanted = frozenset().union(*self._wants.values())
-            for key, r in self._remotes.items():
-                if key in wanted and r.sub is None:
-                    r.last_sequence = None
+            if self._running:
+                self._apply()
+
+    def _apply(self) -> None:
+        wanted = frozenset().union(*self._wants.values())
+        for key, r in self._remotes.items():
+            if key in wanted and r.sub is None:
+                r.last_sequence = None
+                try:
                     r.sub = self.router.session.declare_subscriber(
                         self.keys.data(r.node, r.stream), self._handler(r)
                     )
-                    log.info("live view of %s: following it across the mesh", key)
-                elif key not in wanted and r.sub is not None:
-                    self._drop(r)
-                    for withdraw in self._withdraw:
-                        withdraw(r.node, r.stream)
-                    log.info("live view of %s: nobody looks at it, no longer followed", key)
+                except Exception:  # the session is closing: the viewer sees no data, says so
+                    log.exception("live view of %s: cannot subscribe to it", key)
+                    continue
+                log.info("live view of %s: following it across the mesh", key)
+            elif key not in wanted and r.sub is not None:
+                self._drop(r)
+                for withdraw in self._withdraw:
+                    withdraw(r.node, r.stream)
+                log.info("live view of %s: nobody looks at it, no longer followed", key)
 
     @staticmethod
     def _drop(r: _Remote) -> None:
@@ -135,7 +136,7 @@ class PartitionLive:
                     h = r.decoder.read_header(payload, r.sample_format)
                     if (h.node, h.stream) != (r.node, r.stream):
                         raise WireError(f"payload says {h.node}/{h.stream}")
-                except WireError as err:
+                except (WireError, ValueError, TypeError) as err:  # whatever the bytes were
                     self.malformed += 1
                     if self.malformed <= 10 or self.malformed % 1000 == 0:
                         log.warning(
