@@ -11,7 +11,8 @@ batches stay on the partition's side of the mesh again.
 
 Everything that arrives is checked in full like the recorder's input (`BatchDecoder`): a
 payload that is not a well-formed batch of that stream, or that names another stream than its
-key, is counted (`malformed`) and dropped, never plotted and never fatal.
+key, is counted (`malformed`), raised as an event (the first, then every 1000th) and dropped:
+never shown and never fatal.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.wire import BatchDecoder, SampleFormat
 from hub.batch_feed import BatchFeed, FedBatch
+from hub.bus import EventBus
 from hub.foxglove.service import FoxgloveLive
 from hub.live_plots import LivePlots
 from hub.router import Router
@@ -50,8 +52,9 @@ class _Remote:
 class PartitionLive:
     name = "partition-live"
 
-    def __init__(self, router: Router, site: SiteConfig) -> None:
+    def __init__(self, router: Router, site: SiteConfig, bus: EventBus) -> None:
         self.router = router
+        self.bus = bus
         self.keys = SiteKeys(site.site)
         self.feed = BatchFeed()
         self._remotes: dict[str, _Remote] = {}
@@ -138,11 +141,17 @@ class PartitionLive:
                         raise WireError(f"payload says {h.node}/{h.stream}")
                 except (WireError, ValueError, TypeError) as err:  # whatever the bytes were
                     self.malformed += 1
-                    if self.malformed <= 10 or self.malformed % 1000 == 0:
-                        log.warning(
-                            "live view of %s/%s: a malformed batch, dropped (%d so far): %s",
-                            r.node, r.stream, self.malformed, err,
-                        )  # fmt: skip
+                    if self.malformed == 1 or self.malformed % 1000 == 0:
+                        self.bus.emit(
+                            logging.WARNING,
+                            "partition-live",
+                            "malformed",
+                            f"live view of {r.node}/{r.stream}: dropped a payload that is not "
+                            f"a valid batch of this stream ({err}); {self.malformed} so far",
+                            node=r.node,
+                            stream=r.stream,
+                            count=self.malformed,
+                        )
                     return
                 # A replay (the partition's edge catching up) is older than what was drawn.
                 late = r.last_sequence is not None and h.sequence <= r.last_sequence

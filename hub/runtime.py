@@ -188,7 +188,7 @@ class HubRuntime:
         )
         # A partition's streams: fetched across the mesh only while somebody looks at them.
         self.partition_live = (
-            PartitionLive(self.router, site)
+            PartitionLive(self.router, site, self.bus)
             if site.hub.partitions and (self.live_plots is not None or self.foxglove)
             else None
         )
