@@ -273,6 +273,20 @@ def test_a_taken_port_fails_the_start_with_one_line():
     assert "in use" in text
 
 
+@pytest.mark.parametrize(
+    ("listen", "url"),
+    [
+        ("127.0.0.1:8765", "ws://127.0.0.1:8765"),
+        ("0.0.0.0:8765", "ws://127.0.0.1:8765"),  # every interface: this machine's own
+        ("[::1]:8766", "ws://[::1]:8766"),  # IPv6 in brackets, or the URL is not one
+    ],
+)
+def test_the_address_it_prints_is_a_url_a_viewer_on_this_machine_can_open(listen: str, url: str):
+    site = parse_config(_site(1).replace('"127.0.0.1:1"', f'"{listen}"'), "<test>")
+    service = FoxgloveLive(site, BatchFeed(), EventBus(), lambda: ReadModel("fox").snapshot())
+    assert service.url == url  # not started: the configured port
+
+
 def test_wss_with_the_site_cas_hub_pair_and_nothing_in_clear(tmp_path: Path):
     """`hub.dashboard.foxglove.tls`: what a page loaded over HTTPS may open (wss://), with the
     site CA's hub pair; a plain ws:// client gets nothing; a loose key is one line at start."""

@@ -36,6 +36,23 @@ def check_listen(value: str) -> str:
 Listen = Annotated[str, AfterValidator(check_listen)]
 
 
+def split_listen(listen: str) -> tuple[str, int]:
+    """``"127.0.0.1:8080"`` -> ("127.0.0.1", 8080); ``"[::1]:8080"`` -> ("::1", 8080) (a
+    `Listen`, checked by the config)."""
+    host, _, port = listen.rpartition(":")
+    return host.removeprefix("[").removesuffix("]"), int(port)
+
+
+def url_host(host: str) -> str:
+    """The host to put in a URL for this machine's own browser or viewer (every interface:
+    this machine's loopback; IPv6 in brackets)."""
+    if host in ("0.0.0.0", ""):
+        return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
+    return f"[{host}]" if ":" in host else host
+
+
 class ServerTls(Strict):
     """TLS for a server the hub runs for people (the dashboard: HTTPS; the Foxglove live view:
     WSS). The site CA's hub pair serves (``pki_dir``'s ``hub.crt`` and ``hub.key``, made for

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
+from edge.config.dashboard import split_listen, url_host
 from edge.config.site import SiteConfig
 from edge.messages import Event
 from edge.threads import NamedThread
@@ -71,12 +72,6 @@ FIXED_TOPICS: Final = {
     "/alarms/current": ALARM_TABLE_SCHEMA,
     "/diagnostics": diagnostics.SCHEMA,
 }
-
-
-def split_listen(listen: str) -> tuple[str, int]:
-    """``127.0.0.1:8765`` / ``[::1]:8765`` (checked by the config) -> host, port."""
-    host, _, port = listen.rpartition(":")
-    return host.removeprefix("[").removesuffix("]"), int(port)
 
 
 @dataclass(slots=True)
@@ -187,7 +182,7 @@ class FoxgloveLive:
         if self._server is not None:
             port = int(self._server.port)
         scheme = "wss" if self.site.hub.dashboard.foxglove.tls else "ws"
-        return f"{scheme}://{host}:{port}"
+        return f"{scheme}://{url_host(host)}:{port}"
 
     def stop(self) -> None:
         if self._running:

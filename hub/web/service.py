@@ -21,6 +21,7 @@ from pathlib import Path
 
 from aiohttp import web
 
+from edge.config.dashboard import split_listen, url_host
 from edge.config.site import SiteConfig
 from edge.threads import NamedThread, name_os_thread
 from hub import server_tls
@@ -52,21 +53,6 @@ def new_loop() -> asyncio.AbstractEventLoop:
 
 class DashboardError(HubError):
     """The dashboard cannot serve (its address is taken or not on this machine)."""
-
-
-def split_listen(listen: str) -> tuple[str, int]:
-    """``"127.0.0.1:8080"`` -> ("127.0.0.1", 8080); ``"[::1]:8080"`` -> ("::1", 8080)."""
-    host, _, port = listen.rpartition(":")
-    return host.removeprefix("[").removesuffix("]"), int(port)
-
-
-def url_host(host: str) -> str:
-    """The host to put in a URL for this machine's own browser."""
-    if host in ("0.0.0.0", ""):
-        return "127.0.0.1"
-    if host == "::":
-        return "[::1]"
-    return f"[{host}]" if ":" in host else host
 
 
 class WebService:
