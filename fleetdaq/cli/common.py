@@ -78,8 +78,8 @@ def stop_with_parent(parent: int, stop: threading.Event) -> None:
     import ctypes
 
     pr_set_pdeathsig = 1
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0) != 0:
+    prctl = getattr(ctypes.CDLL(None, use_errno=True), "prctl", None)  # Linux only
+    if prctl is not None and prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0) != 0:
         err = ctypes.get_errno()
         fail(f"--with-parent: prctl(PR_SET_PDEATHSIG) failed: {os.strerror(err)}", 1)
     if os.getppid() != parent:
