@@ -50,11 +50,13 @@ from hub.bus import EventBus
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
 from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
+from hub.partition_snapshots import PartitionSnapshots
 from hub.read_model import HubView, ReadModel, StreamView, to_jsonable
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
 from hub.router import Router
 from hub.services import ServiceStack
+from hub.snapshots import SnapshotBuffer
 from hub.status import StatusService
 
 log = logging.getLogger("fleetdaq.hub")
@@ -213,6 +215,26 @@ class PartitionRuntime:
             self.refused,
             partition=partition,
         )
+        # The minute before an event, of this hub's slice: triggered with the main hub's.
+        self.snapshots = (
+            SnapshotBuffer(
+                site,
+                self.data_dir,
+                self.bus,
+                self.model,
+                self.recorder.feed,
+                lambda: self.recorder.recording,
+            )
+            if site.hub.snapshot.enabled
+            else None
+        )
+        if self.snapshots is not None:
+            self.recorder.tap = self.snapshots.offer
+        self.snapshot_requests = (
+            PartitionSnapshots(self.router, self.keys, self.snapshots, self.bus)
+            if self.snapshots is not None
+            else None
+        )
         self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
         self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
         self.status = StatusService(
@@ -228,6 +250,8 @@ class PartitionRuntime:
                 _BusService(self.bus),
                 self.event_log,
                 self.recorder,
+                *([self.snapshots] if self.snapshots is not None else []),
+                *([self.snapshot_requests] if self.snapshot_requests is not None else []),
                 self.nodes,
                 self.hub_health,
                 self.report,
@@ -293,7 +317,8 @@ class PartitionRuntime:
     def snapshot(self) -> HubView:
         view = self.model.snapshot(time.time_ns())
         failures = tuple(self.failures()) if self.started else ()
-        return dataclasses.replace(view, failures=failures)
+        snapshots = self.snapshots.counters() if self.snapshots is not None else {}
+        return dataclasses.replace(view, failures=failures, snapshots=snapshots)
 
     def summary(self) -> dict[str, Any]:
         out = self.recorder.summary()

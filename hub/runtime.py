@@ -44,6 +44,7 @@ from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
 from hub.partition import PartitionWatch
 from hub.partition_live import PartitionLive
+from hub.partition_snapshots import SnapshotTriggers
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
@@ -186,6 +187,12 @@ class HubRuntime:
         self.partitions = (
             PartitionWatch(self.router, site, self.bus, self.model) if site.hub.partitions else None
         )
+        # Each partition hub keeps a snapshot buffer of its slice, triggered with this one's.
+        self.snapshot_triggers = (
+            SnapshotTriggers(self.router, self.keys, self.snapshots)
+            if site.hub.partitions and self.snapshots is not None
+            else None
+        )
         # A partition's streams: fetched across the mesh only while somebody looks at them.
         self.partition_live = (
             PartitionLive(self.router, site, self.bus)
@@ -209,6 +216,7 @@ class HubRuntime:
                 self.fleet,
                 self.hub_health,
                 *([self.snapshots] if self.snapshots is not None else []),
+                *([self.snapshot_triggers] if self.snapshot_triggers is not None else []),
                 *([self.live_plots] if self.live_plots is not None else []),
                 *([self.partition_live] if self.partition_live is not None else []),
                 self.supervisor,

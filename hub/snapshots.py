@@ -86,6 +86,9 @@ class SnapshotBuffer:
         self._pool: ThreadPoolExecutor | None = None
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
         self._events = bus.subscribe(self.name, self._on_event)
+        self.on_trigger: Callable[[dict[str, str]], None] | None = None
+        """Told of every request and every alarm that may take a snapshot (the main hub of a
+        partitioned site passes them on: each partition hub keeps a buffer of its own slice)."""
         self._recorder_cfg = site.hub.recorder.model_copy(
             update={"file_duration_s": None, "max_file_bytes": 1 << 50}
         )
@@ -138,6 +141,32 @@ class SnapshotBuffer:
     def _on_event(self, e: Event) -> None:
         if e.tag != "alarm_raised" or e.get("severity") not in self.cfg.on_alarm:
             return
+        alarm = str(e.get("alarm") or "?")
+        self._tell({"kind": "alarm", "alarm": alarm})
+        self._alarm(alarm)
+
+    def _tell(self, trigger: dict[str, str]) -> None:
+        callback = self.on_trigger
+        if callback is None:
+            return
+        try:
+            callback(trigger)
+        except Exception:  # the partitions miss this one; the main hub's snapshot goes on
+            log.exception("snapshots: passing a trigger on failed")
+
+    def remote(self, trigger: dict[str, str]) -> None:
+        """A trigger the main hub passed on (a partition hub): a request is written now (not
+        waited for; the snapshot event says where), an alarm as this hub's own alarms are
+        (not while its recorder writes; merged within `min_interval_s`)."""
+        if trigger["kind"] == "alarm":
+            self._alarm(trigger["alarm"])
+            return
+        pool = self._pool
+        if pool is not None:
+            who, note = trigger["who"], trigger.get("note", "")
+            pool.submit(self._write, f"requested by {who} on the main hub", who, note)
+
+    def _alarm(self, alarm: str) -> None:
         if self.recording():
             self.skipped_recording += 1
             return
@@ -145,7 +174,6 @@ class SnapshotBuffer:
         if pool is None:
             return
         now = time.time_ns()
-        alarm = e.get("alarm") or "?"
         pending = self._pending_alarm
         if now - self._last_alarm_ns < self.cfg.min_interval_s * 1e9 or (
             pending is not None and not pending.done()
@@ -167,6 +195,7 @@ class SnapshotBuffer:
         pool = self._pool
         if pool is None:
             return False, "the hub is not running"
+        self._tell({"kind": "request", "who": who, "note": note})
         try:
             return pool.submit(self._write, f"requested by {who}", who, note).result(WAIT_S)
         except FutureTimeout:

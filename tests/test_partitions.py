@@ -402,3 +402,64 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
     recorded = _recorded(tmp_path / "main")
     assert any("wec" in topic for topic in recorded), recorded
     assert not any("cell" in topic for topic in recorded), "the main hub records its slice only"
+
+
+def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: Path):
+    """`fleetdaq rec snapshot` asks the main hub; each partition hub keeps a buffer of its own
+    slice and writes it too, and its event (with where the file went) reaches the main hub's
+    log. Junk on the trigger key is refused and said, never taken."""
+    from fleetdaq.analysis.errors import UnknownStream
+    from fleetdaq.read import read_stream
+
+    main_port, bay2_port = free_port(), free_port()
+    nodes = "".join(NODE.format(name=n) for n in ("wec-a", "cell-a"))
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(SITE.format(main=main_port, bay2=bay2_port, nodes=nodes))
+    rig = Rig(tmp_path, cfg, main_port)
+    try:
+        main = rig.main_hub()
+        bay2 = rig.bay2_hub()
+        edges = [rig.edge("wec-a"), rig.edge("cell-a")]
+        wait_until(
+            lambda: (
+                (stream_view(rig.client.status() or {}, "cell-a", "wave") or {}).get("batches", 0)
+                >= 30
+            ),
+            60,
+            "3 s of cell-a's batches taken by bay2",
+        )
+        rig.client.session.put(SiteKeys("parts").hub("snapshot/trigger"), b'{"kind": "wipe"}')
+        r = subprocess.run(
+            [sys.executable, "-m", "fleetdaq", "rec", "snapshot", "--config", str(cfg),
+             "--note", "before the storm"],
+            cwd=REPO, capture_output=True, text=True, timeout=200, check=False,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stdout + r.stderr
+        bay2_view = wait_until(
+            lambda: (v := (rig.bay2_status() or {}).get("snapshots") or {}).get("written") and v,
+            60,
+            "bay2's snapshot",
+        )
+        main_view = (rig.client.status() or {})["snapshots"]
+        assert main_view["written"] == 1
+        ours = read_stream(Path(bay2_view["last"]), "cell-a/wave")
+        assert ours.data.shape[0] >= 2000, "bay2's seconds of its own slice"
+        assert Path(bay2_view["last"]).is_relative_to(tmp_path / "bay2")
+        with pytest.raises(UnknownStream):
+            read_stream(Path(main_view["last"]), "cell-a/wave")  # the main hub's: its slice
+        assert read_stream(Path(main_view["last"]), "wec-a/wave").data.shape[0] >= 1000
+        main_log = tmp_path / "main" / "events.log"
+        wait_until(
+            lambda: "on the main hub): before the storm" in main_log.read_text(),
+            30,
+            "bay2's snapshot event in the main hub's log",
+        )
+        events = main_log.read_text()
+        assert "refused a snapshot trigger that is not one (kind 'wipe'" in events
+        for proc in (*edges, bay2, main):
+            assert proc.terminate(30) == 0, proc.output()[-3000:]
+    finally:
+        for p in rig.procs:
+            p.kill()
+        if rig._client is not None:
+            rig._client.close()

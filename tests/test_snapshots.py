@@ -3,6 +3,7 @@ a configured severity is raised — with the batches before it, read back by `fl
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -138,3 +139,62 @@ def test_an_alarm_writes_the_seconds_before_it_and_a_second_alarm_shares_it(
     finally:
         pub.undeclare()
         session.close()
+
+
+# --- a partitioned site: the main hub's triggers, to each partition hub's own buffer ------------
+
+
+def test_the_buffer_tells_of_every_request_and_alarm_and_takes_remote_ones_as_its_own(
+    tmp_path: Path,
+):
+    from edge.messages import make_event
+
+    site = parse_config(SITE.format(port=1, seconds=60, max_bytes=1 << 30), "<test>")
+    recording = [True]
+    snap = SnapshotBuffer(
+        site, tmp_path, EventBus(), ReadModel("snap"), BatchFeed(), lambda: recording[0]
+    )
+    told: list[dict[str, str]] = []
+    snap.on_trigger = told.append
+    snap.start()
+    try:
+        assert snap.snapshot("ann@desk", "before the storm")[0] is False  # nothing held yet
+        raised = make_event(time.time_ns(), "hub", 40, "alarms", "alarm_raised", "x",
+                            alarm="heave_high", severity="major")  # fmt: skip
+        snap._on_event(raised)
+        assert told == [
+            {"kind": "request", "who": "ann@desk", "note": "before the storm"},
+            {"kind": "alarm", "alarm": "heave_high"},
+        ]
+        assert snap.skipped_recording == 1, "recording: this hub's own alarm takes none"
+        snap.remote({"kind": "alarm", "alarm": "heave_high"})
+        assert snap.skipped_recording == 2, "nor a passed-on one while its recorder writes"
+        recording[0] = False
+        snap.remote({"kind": "alarm", "alarm": "heave_high"})
+        snap.remote({"kind": "alarm", "alarm": "heave_very_high"})
+        assert snap.merged == 1, "alarms within min_interval_s share one snapshot"
+    finally:
+        snap.stop()
+
+
+@pytest.mark.parametrize(
+    ("raw", "why"),
+    [
+        (b"", "not JSON"),
+        (b"[]", "not a JSON object"),
+        (b'{"kind": "shutdown"}', "is not alarm or request"),
+        (b'{"kind": "alarm"}', "missing ['alarm']"),
+        (b'{"kind": "request", "note": "x"}', "missing ['who']"),
+        (b'{"kind": "alarm", "alarm": "a", "path": "/etc"}', "unknown keys ['path']"),
+        (b'{"kind": "alarm", "alarm": 7}', "alarm is not a string"),
+        (b'{"kind": "request", "who": "' + b"w" * 5000 + b'"}', "bytes (at most 4096)"),
+    ],
+)
+def test_a_trigger_that_is_not_one_is_refused_saying_why(raw: bytes, why: str):
+    from hub.partition_snapshots import parse_trigger
+
+    with pytest.raises(ValueError, match=re.escape(why)):
+        parse_trigger(raw)
+    assert parse_trigger(b'{"kind": "request", "who": "ann@desk"}') == {
+        "kind": "request", "who": "ann@desk"
+    }  # fmt: skip

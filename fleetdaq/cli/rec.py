@@ -24,7 +24,7 @@ def _size(n: int) -> str:
     return f"{x:.1f} TB"
 
 
-def _show(reply: dict[str, Any], partition: bool = False) -> None:
+def _show(reply: dict[str, Any]) -> None:
     r, s = reply["recorder"], reply.get("snapshots") or {}
     click.echo(f"recorder     {r['state']}")
     click.echo(f"session      {r['session'] or '-'}  ({r['session_dir'] or '-'})")
@@ -43,8 +43,6 @@ def _show(reply: dict[str, Any], partition: bool = False) -> None:
             f"({_size(s['held_bytes'])} of {_size(s['max_bytes'])}); "
             f"{s['written']} written" + (f", last {s['last']}" if s["last"] else "")
         )
-    elif partition:
-        click.echo("snapshot     on the main hub (a partition hub keeps none)")
     else:
         click.echo("snapshot     switched off (hub.snapshot.enabled)")
 
@@ -63,7 +61,7 @@ def _partition_status(config: str, connect: tuple[str, ...], name: str, as_json:
     if as_json:
         click.echo(json.dumps(reply, indent=2))
     else:
-        _show(reply, partition=True)
+        _show(reply)
     sys.exit(0)
 
 

@@ -1,0 +1,128 @@
+"""Snapshots on a partitioned site: each partition hub keeps a snapshot buffer of its own slice
+(the main hub's holds only the main hub's), and takes a snapshot whenever the main hub is asked
+for one or sees an alarm that may take one.
+
+The main hub puts each trigger on ``fleetdaq/<site>/hub/snapshot/trigger`` (`SnapshotTriggers`,
+told by its `SnapshotBuffer`); every partition hub takes it (`PartitionSnapshots`) and acts as
+its own buffer would: a request is written at once, an alarm only while its recorder is not
+writing and not within `min_interval_s` of the last. Each snapshot is an event of the hub that
+wrote it (a partition's reach the main hub's event log like all its events), so an operator
+sees where every file went.
+
+A trigger is a small JSON object; anything else on the key is counted, raised as an event (the
+first, then every 1000th) and dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+from edge.keys import SiteKeys
+from hub.bus import EventBus
+from hub.router import Router
+from hub.snapshots import SnapshotBuffer
+
+MAX_TRIGGER_BYTES = 4096
+MAX_TEXT = 1000
+
+
+def trigger_key(keys: SiteKeys) -> str:
+    return keys.hub("snapshot/trigger")
+
+
+class SnapshotTriggers:
+    """The main hub's side: every trigger its snapshot buffer is told of, to the partitions."""
+
+    name = "snapshot-triggers"
+
+    def __init__(self, router: Router, keys: SiteKeys, snapshots: SnapshotBuffer) -> None:
+        self.router = router
+        self.key = trigger_key(keys)
+        self.sent = 0
+        snapshots.on_trigger = self.send
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+    def failure(self) -> str | None:
+        return None
+
+    def send(self, trigger: dict[str, str]) -> None:
+        self.router.session.put(self.key, json.dumps(trigger).encode())
+        self.sent += 1
+
+
+def parse_trigger(raw: bytes) -> dict[str, str]:
+    """A trigger as sent by `SnapshotTriggers`, checked in full; ValueError says what is wrong."""
+    if len(raw) > MAX_TRIGGER_BYTES:
+        raise ValueError(f"{len(raw)} bytes (at most {MAX_TRIGGER_BYTES})")
+    try:
+        obj: Any = json.loads(raw)
+    except (ValueError, RecursionError):
+        raise ValueError("not JSON") from None
+    if not isinstance(obj, dict):
+        raise ValueError("not a JSON object")
+    allowed = {"alarm": {"kind", "alarm"}, "request": {"kind", "who", "note"}}
+    kind = obj.get("kind")
+    if kind not in allowed:
+        raise ValueError(f"kind {kind!r} is not alarm or request")
+    unknown = set(obj) - allowed[kind]
+    if unknown:
+        raise ValueError(f"unknown keys {sorted(unknown)}")
+    for k, v in obj.items():
+        if not isinstance(v, str) or len(v) > MAX_TEXT:
+            raise ValueError(f"{k} is not a string of at most {MAX_TEXT} characters")
+    needed = allowed[kind] - {"note"}
+    if not needed <= set(obj):
+        raise ValueError(f"missing {sorted(needed - set(obj))}")
+    return dict(obj)
+
+
+class PartitionSnapshots:
+    """A partition hub's side: the main hub's triggers, to this hub's own snapshot buffer."""
+
+    name = "partition-snapshots"
+
+    def __init__(
+        self, router: Router, keys: SiteKeys, snapshots: SnapshotBuffer, bus: EventBus
+    ) -> None:
+        self.router = router
+        self.key = trigger_key(keys)
+        self.snapshots = snapshots
+        self.bus = bus
+        self.taken = 0
+        self.malformed = 0
+        self._sub: Any = None
+
+    def start(self) -> None:
+        self._sub = self.router.session.declare_subscriber(self.key, self._on_trigger)
+
+    def stop(self) -> None:
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
+
+    def failure(self) -> str | None:
+        return None
+
+    def _on_trigger(self, sample: Any) -> None:
+        try:
+            trigger = parse_trigger(sample.payload.to_bytes())
+        except ValueError as err:
+            self.malformed += 1
+            if self.malformed == 1 or self.malformed % 1000 == 0:
+                self.bus.emit(
+                    logging.WARNING,
+                    "snapshots",
+                    "malformed_trigger",
+                    f"refused a snapshot trigger that is not one ({err}); {self.malformed} so far",
+                    count=self.malformed,
+                )
+            return
+        self.taken += 1
+        self.snapshots.remote(trigger)
