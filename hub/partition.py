@@ -216,20 +216,9 @@ class PartitionRuntime:
             partition=partition,
         )
         # The minute before an event, of this hub's slice: triggered with the main hub's.
-        self.snapshots = (
-            SnapshotBuffer(
-                site,
-                self.data_dir,
-                self.bus,
-                self.model,
-                self.recorder.feed,
-                lambda: self.recorder.recording,
-            )
-            if site.hub.snapshot.enabled
-            else None
+        self.snapshots = SnapshotBuffer.of_recorder(
+            site, self.data_dir, self.bus, self.model, self.recorder
         )
-        if self.snapshots is not None:
-            self.recorder.tap = self.snapshots.offer
         self.snapshot_requests = (
             PartitionSnapshots(self.router, self.keys, self.snapshots, self.bus)
             if self.snapshots is not None

@@ -137,20 +137,9 @@ class HubRuntime:
             self.snapshot,
             self._record_action,
         )
-        self.snapshots = (
-            SnapshotBuffer(
-                site,
-                self.data_dir,
-                self.bus,
-                self.model,
-                self.feed,
-                lambda: self.recorder.recording,
-            )
-            if site.hub.snapshot.enabled
-            else None
+        self.snapshots = SnapshotBuffer.of_recorder(
+            site, self.data_dir, self.bus, self.model, self.recorder
         )
-        if self.snapshots is not None:
-            self.recorder.tap = self.snapshots.offer
         # Filling the plots costs every batch of every stream (a quarter of the hub's CPU with
         # a hundred small edges): only when something shows them.
         self.live_plots = (

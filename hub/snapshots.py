@@ -28,7 +28,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from edge.config.site import SiteConfig, effective_yaml
 from edge.messages import Event
@@ -38,6 +38,9 @@ from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.read_model import ReadModel
 from hub.session import RecordingSession, topic_of
+
+if TYPE_CHECKING:
+    from hub.recorder import Recorder
 
 log = logging.getLogger("fleetdaq.snapshots")
 
@@ -94,6 +97,18 @@ class SnapshotBuffer:
         )
         self._config_yaml = effective_yaml(site)
         self._publish()
+
+    @classmethod
+    def of_recorder(
+        cls, site: SiteConfig, data_dir: Path, bus: EventBus, model: ReadModel, recorder: Recorder
+    ) -> SnapshotBuffer | None:
+        """The buffer of what `recorder` takes (its batch feed and its tap), or None when the
+        site keeps none (`hub.snapshot.enabled`)."""
+        if not site.hub.snapshot.enabled:
+            return None
+        buffer = cls(site, data_dir, bus, model, recorder.feed, lambda: recorder.recording)
+        recorder.tap = buffer.offer
+        return buffer
 
     # --- service ---------------------------------------------------------------------------------
 
