@@ -21,6 +21,7 @@ writing, an alarm takes no snapshot: its seconds are in the recording already.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import threading
 import time
@@ -179,7 +180,8 @@ class SnapshotBuffer:
         pool = self._pool
         if pool is not None:
             who, note = trigger["who"], trigger.get("note", "")
-            pool.submit(self._write, f"requested by {who} on the main hub", who, note)
+            with contextlib.suppress(RuntimeError):  # stopping meanwhile: no new snapshots
+                pool.submit(self._write, f"requested by {who} on the main hub", who, note)
 
     def _alarm(self, alarm: str) -> None:
         if self.recording():
@@ -201,7 +203,8 @@ class SnapshotBuffer:
             time.sleep(GRACE_S)
             return self._write(f"alarm {alarm} raised", f"alarm:{alarm}", "")
 
-        self._pending_alarm = pool.submit(later)
+        with contextlib.suppress(RuntimeError):  # stopping meanwhile: no new snapshots
+            self._pending_alarm = pool.submit(later)
 
     # --- writing ---------------------------------------------------------------------------------
 
