@@ -5,6 +5,7 @@ slice records on untouched. The main hub sees the whole fleet through the mesh."
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -103,12 +104,14 @@ class Rig:
         return out
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
+@contextlib.contextmanager
+def running_rig(tmp_path: Path, nodes: tuple[str, ...], hub_extra: str = "") -> Iterator[Rig]:
+    """A site of `nodes` (``cell-*`` are bay2's) with `hub_extra` lines under ``hub:``; every
+    process the rig starts is ended on the way out."""
     main, bay2 = free_port(), free_port()
-    nodes = "".join(NODE.format(name=n) for n in (*MAIN_SLICE, *BAY2_SLICE))
+    text = SITE.format(main=main, bay2=bay2, nodes="".join(NODE.format(name=n) for n in nodes))
     cfg = tmp_path / "site.yaml"
-    cfg.write_text(SITE.format(main=main, bay2=bay2, nodes=nodes))
+    cfg.write_text(text.replace("  partitions:\n", hub_extra + "  partitions:\n"))
     r = Rig(tmp_path, cfg, main)
     try:
         yield r
@@ -117,6 +120,12 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
             p.kill()
         if r._client is not None:
             r._client.close()
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    with running_rig(tmp_path, (*MAIN_SLICE, *BAY2_SLICE)) as r:
+        yield r
 
 
 def _acked(status: dict[str, Any], node: str) -> int:
@@ -301,17 +310,11 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
     from hub.web import frames
     from tests.foxglove_client import FoxgloveClient
 
-    main_port, bay2_port = free_port(), free_port()
-    nodes = "".join(NODE.format(name=n) for n in ("wec-a", "cell-a"))
     dash = (
         f'  dashboard: {{enabled: true, listen: "127.0.0.1:0", users_file: {tmp_path / "users"},'
         ' foxglove: {enabled: true, listen: "127.0.0.1:0"}}\n'
     )
-    text = SITE.format(main=main_port, bay2=bay2_port, nodes=nodes)
-    cfg = tmp_path / "site.yaml"
-    cfg.write_text(text.replace("  partitions:\n", dash + "  partitions:\n"))
-    rig = Rig(tmp_path, cfg, main_port)
-    try:
+    with running_rig(tmp_path, ("wec-a", "cell-a"), dash) as rig:
         main = rig.main_hub()
         rig.bay2_hub()
         rig.edge("wec-a")
@@ -392,11 +395,6 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
         for proc in rig.procs[2:]:  # the edges, then the main hub: every file closed
             assert proc.terminate(30) == 0, proc.output()[-3000:]
         assert main.terminate(30) == 0, main.output()[-3000:]
-    finally:
-        for p in rig.procs:
-            p.kill()
-        if rig._client is not None:
-            rig._client.close()
     events = (tmp_path / "main" / "events.log").read_text()
     assert "live view of cell-a/wave: dropped a payload that is not a valid batch" in events
     recorded = _recorded(tmp_path / "main")
@@ -411,12 +409,7 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
     from fleetdaq.analysis.errors import UnknownStream
     from fleetdaq.read import read_stream
 
-    main_port, bay2_port = free_port(), free_port()
-    nodes = "".join(NODE.format(name=n) for n in ("wec-a", "cell-a"))
-    cfg = tmp_path / "site.yaml"
-    cfg.write_text(SITE.format(main=main_port, bay2=bay2_port, nodes=nodes))
-    rig = Rig(tmp_path, cfg, main_port)
-    try:
+    with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
         main = rig.main_hub()
         bay2 = rig.bay2_hub()
         edges = [rig.edge("wec-a"), rig.edge("cell-a")]
@@ -430,7 +423,7 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
         )
         rig.client.session.put(SiteKeys("parts").hub("snapshot/trigger"), b'{"kind": "wipe"}')
         r = subprocess.run(
-            [sys.executable, "-m", "fleetdaq", "rec", "snapshot", "--config", str(cfg),
+            [sys.executable, "-m", "fleetdaq", "rec", "snapshot", "--config", str(rig.cfg),
              "--note", "before the storm"],
             cwd=REPO, capture_output=True, text=True, timeout=200, check=False,
         )  # fmt: skip
@@ -458,8 +451,3 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
         assert "refused a snapshot trigger that is not one (kind 'wipe'" in events
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
-    finally:
-        for p in rig.procs:
-            p.kill()
-        if rig._client is not None:
-            rig._client.close()
