@@ -19,10 +19,12 @@ What crosses the mesh is small:
   ``hub/partition/<name>/alive`` tells the main hub that it is there.
 
 A partition hub runs the router, the event bus and events.log, the recorder, the node watch of
-its slice, its own health, the report and a status request on ``hub/partition/<name>/status``.
-Supervision (alarms, notifications), rules, commands, snapshots and the dashboard run on the
-main hub only (`PartitionWatch` puts the partitions' streams into its read model, so the
-stream alarms, the dashboard and ``hub/status`` cover the whole fleet).
+its slice, its own health, the report, a status request on ``hub/partition/<name>/status`` and
+recorder requests on ``hub/partition/<name>/recorder`` (the main hub passes its start, stop and
+split on: `hub.partition_recorders`). Supervision (alarms, notifications), rules, commands,
+snapshots and the dashboard run on the main hub only (`PartitionWatch` puts the partitions'
+streams into its read model, so the stream alarms, the dashboard and ``hub/status`` cover the
+whole fleet).
 """
 
 from __future__ import annotations
@@ -50,9 +52,11 @@ from hub.bus import EventBus
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
 from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
+from hub.partition_recorders import recorder_key
 from hub.partition_snapshots import PartitionSnapshots
 from hub.read_model import HubView, ReadModel, StreamView, to_jsonable
 from hub.recorder import Recorder
+from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
 from hub.router import Router
 from hub.services import ServiceStack
@@ -224,6 +228,16 @@ class PartitionRuntime:
             if self.snapshots is not None
             else None
         )
+        # Start, stop and split, from the main hub (which passes its own on) or for this hub alone.
+        self.recorder_requests = RecorderRequests(
+            self.router,
+            self.keys,
+            self.recorder,
+            self.snapshot,
+            self.snapshots.snapshot if self.snapshots is not None else None,
+            site.security,
+            key=recorder_key(self.keys, partition),
+        )
         self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
         self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
         self.status = StatusService(
@@ -244,6 +258,7 @@ class PartitionRuntime:
                 self.nodes,
                 self.hub_health,
                 self.report,
+                self.recorder_requests,
                 self.status,
             ]
         )

@@ -2,8 +2,14 @@
 
 Request: ``{"action": "status" | "start" | "stop" | "split" | "snapshot", "user": who,
 "host": from where, "note": text}``. Reply: ``{"ok": bool, "error": text, "result": what was
-done, "recorder": the recorder's view, "snapshots": the snapshot buffer's view}``. Every action
-is an event naming who asked (the recorder's and the snapshot buffer's own events).
+done, "recorder": the recorder's view, "snapshots": the snapshot buffer's view, "partitions":
+each partition hub as its report says (alive, its recorder), "partition_results": each partition
+hub's answer to a start, stop or split}``. Every action is an event naming who asked (the
+recorder's and the snapshot buffer's own events).
+
+On a partitioned site the main hub passes start, stop and split on to every partition hub
+(`hub.partition_recorders`), and each partition hub answers these requests for its own recorder
+on ``hub/partition/<name>/recorder``.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from typing import Any
 
 from edge.config.security import SecurityConfig
 from edge.keys import SiteKeys
+from hub.partition_recorders import FORWARDED, PartitionRecorders
 from hub.read_model import HubView, to_jsonable
 from hub.recorder import Recorder
 from hub.requests import BadRequest, Caller, RequestService, as_caller, parse_object, text
@@ -34,11 +41,15 @@ class RecorderRequests(RequestService):
         view: Callable[[], HubView],
         snapshot: Snapshot | None,
         security: SecurityConfig | None = None,
+        key: str | None = None,
+        partitions: PartitionRecorders | None = None,
     ) -> None:
-        super().__init__(router, keys.hub("recorder"), workers=1, security=security)
+        super().__init__(router, key or keys.hub("recorder"), workers=1, security=security)
         self.recorder = recorder
         self.view = view
         self.snapshot = snapshot
+        self.partitions = partitions
+        """The main hub of a partitioned site: start, stop and split reach every partition."""
 
     def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         try:
@@ -53,6 +64,13 @@ class RecorderRequests(RequestService):
             note = text(req, "note")
         except BadRequest as err:
             return self._answer(False, str(err), "")
+        collect = None
+        if self.partitions is not None and action in FORWARDED:
+            # Asked first and all at once; they act while this hub does.
+            collect = self.partitions.ask(
+                {"action": action, "user": req.get("user") or "unknown",
+                 "host": req.get("host") or "unknown", "note": note}
+            )  # fmt: skip
         rec = self.recorder
         ok, result = True, ""
         if action == "start":
@@ -67,9 +85,13 @@ class RecorderRequests(RequestService):
                 ok, result = False, "the snapshot buffer is switched off (hub.snapshot.enabled)"
             else:
                 ok, result = self.snapshot(who, note)
-        return self._answer(ok, "", result)
+        answers = collect() if collect is not None else {}
+        ok = ok and all(a["ok"] for a in answers.values())
+        return self._answer(ok, "", result, answers)
 
-    def _answer(self, ok: bool, error: str, result: str) -> dict[str, Any]:
+    def _answer(
+        self, ok: bool, error: str, result: str, answers: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
         view = self.view()
         return {
             "ok": ok and not error,
@@ -77,4 +99,6 @@ class RecorderRequests(RequestService):
             "result": result,
             "recorder": to_jsonable(view.recorder),
             "snapshots": to_jsonable(view.snapshots),
+            "partitions": to_jsonable(view.partitions),
+            "partition_results": answers or {},
         }

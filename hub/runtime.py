@@ -44,6 +44,7 @@ from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
 from hub.partition import PartitionWatch
 from hub.partition_live import PartitionLive
+from hub.partition_recorders import FORWARDED, PartitionRecorders
 from hub.partition_snapshots import SnapshotTriggers
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
@@ -154,6 +155,11 @@ class HubRuntime:
             self.snapshot,
             self.snapshots.snapshot if self.snapshots is not None else None,
             site.security,
+            partitions=(
+                PartitionRecorders(self.router, self.keys, list(site.hub.partitions), self.bus)
+                if site.hub.partitions
+                else None
+            ),
         )
         self.heartbeat = Heartbeat(self.router, self.keys, self._session_name)
         self.status = StatusService(self.router, self.keys, self.snapshot, site.security)
@@ -224,7 +230,10 @@ class HubRuntime:
         """systemd's READY, STATUS and watchdog (the recorder's writer must keep moving)."""
 
     def _record_action(self, action: str, who: str) -> str:
-        """A rule's `record:` action."""
+        """A rule's `record:` action (start, stop and split reach every partition hub too)."""
+        parts = self.recorder_requests.partitions
+        if parts is not None and action in FORWARDED:
+            parts.pass_on({"action": action, "user": who, "host": "hub", "note": ""})
         if action == "split":
             return self.recorder.split(who)
         if action == "stop":

@@ -451,3 +451,150 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
         assert "refused a snapshot trigger that is not one (kind 'wipe'" in events
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
+
+
+def test_start_stop_and_split_on_the_main_hub_reach_every_partition_hub(tmp_path: Path):
+    """`fleetdaq rec split|stop|start` asks the main hub, which passes the request on to every
+    partition hub and replies with each hub's answer; `--partition NAME` asks that hub alone.
+    With the partition hub down the main hub still acts, and the reply names the hub that did
+    not answer (exit 1)."""
+
+    def rec(rig: Rig, *args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "fleetdaq", "rec", *args, "--config", str(rig.cfg)],
+            cwd=REPO, capture_output=True, text=True, timeout=200, check=False,
+        )  # fmt: skip
+
+    def recorder(rig: Rig, partition: str | None = None) -> dict[str, Any]:
+        more = ("--partition", partition) if partition else ()
+        r = rec(rig, "status", "--json", *more)
+        assert r.returncode == 0, r.stdout + r.stderr
+        out: dict[str, Any] = json.loads(r.stdout)
+        return out
+
+    with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
+        main = rig.main_hub()
+        bay2 = rig.bay2_hub()
+        edges = [rig.edge("wec-a"), rig.edge("cell-a")]
+        wait_until(
+            lambda: all(recorder(rig, p)["recorder"]["current_file"] for p in (None, "bay2")),
+            60,
+            "a file open on both hubs",
+        )
+
+        # Split on the main hub: both hubs close a file.
+        r = rec(rig, "split")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "split: closed " in r.stdout
+        assert "partition bay2: closed " in r.stdout
+        wait_until(
+            lambda: recorder(rig, "bay2")["recorder"]["files"] and True,
+            30,
+            "bay2's closed file in its status",
+        )
+        main_files = len(recorder(rig)["recorder"]["files"])
+        assert main_files == 1
+
+        # Split on bay2 alone: the main hub's files stay as they were.
+        wait_until(
+            lambda: recorder(rig, "bay2")["recorder"]["current_file"], 30, "bay2's next file"
+        )
+        r = rec(rig, "split", "--partition", "bay2", "--json")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert json.loads(r.stdout)["result"].startswith("closed ")
+        assert len(recorder(rig, "bay2")["recorder"]["files"]) == 2
+        assert len(recorder(rig)["recorder"]["files"]) == main_files
+
+        # Stop on the main hub: both stop; the main hub's status shows bay2's recorder, and
+        # bay2's event (naming who) reaches the main hub's log.
+        r = rec(rig, "stop", "--note", "tide turning")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "partition bay2: stopped; session " in r.stdout
+        assert recorder(rig)["recorder"]["state"] == "stopped"
+        assert recorder(rig, "bay2")["recorder"]["state"] == "stopped"
+        wait_until(
+            lambda: "bay2: stopped " in rec(rig, "status").stdout,
+            30,
+            "bay2's stopped recorder in the main hub's status (from its report)",
+        )
+        main_log = tmp_path / "main" / "events.log"
+        wait_until(
+            lambda: any(
+                "hub/bay2" in line and "recording stopped by " in line
+                for line in main_log.read_text().splitlines()
+            ),
+            30,
+            "bay2's stop in the main hub's log",
+        )
+
+        # Start on the main hub: both record again, each into a new session.
+        r = rec(rig, "start", "--json")
+        assert r.returncode == 0, r.stdout + r.stderr
+        answer = json.loads(r.stdout)
+        assert answer["partition_results"]["bay2"]["ok"] is True
+        assert answer["partition_results"]["bay2"]["result"].startswith("recording into ")
+        assert recorder(rig, "bay2")["recorder"]["state"] == "recording"
+        assert len([d for d in (tmp_path / "bay2").iterdir() if d.name[:1].isdigit()]) == 2
+
+        # bay2 down: the main hub stops all the same, and says which hub did not answer.
+        assert bay2.terminate(30) == 0, bay2.output()[-3000:]
+        rig.client.wait(
+            lambda s: s["partitions"]["bay2"]["alive"] is False, 20, "the main hub to see bay2 gone"
+        )
+        r = rec(rig, "stop")
+        assert r.returncode == 1, r.stdout + r.stderr
+        assert "partition bay2: no answer within" in r.stderr
+        assert "partition    bay2: gone" in r.stdout
+        assert recorder(rig)["recorder"]["state"] == "stopped"
+        for proc in (*edges, main):
+            assert proc.terminate(30) == 0, proc.output()[-3000:]
+
+
+def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_said(
+    tmp_path: Path,
+):
+    """A rule's `record: split` on the main hub splits every partition hub's file too, without
+    the rule waiting on another machine; a partition hub that is down is a warning event."""
+    with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
+        bay3 = free_port()
+        text = rig.cfg.read_text().replace(
+            "\nnodes:\n",
+            f'\n    bay3:\n      listen: [tcp/127.0.0.1:{bay3}]\n      nodes: ["spare-*"]\n'
+            "nodes:\n  spare-1:\n    streams:\n      wave: {driver: wave_sim, rate_hz: 10,"
+            " channels: [{name: c0}]}\n",
+        )
+        text += (
+            "rules:\n  split_everywhere:\n"
+            "    when: {node: wec-a, alive: true}\n"
+            "    do: [{record: split}]\n"
+        )
+        rig.cfg.write_text(text)
+        main = rig.main_hub()
+        bay2 = rig.bay2_hub()  # bay3 stays down
+        edges = [rig.edge("cell-a")]
+        wait_until(
+            lambda: ((rig.bay2_status() or {}).get("recorder") or {}).get("current_file"),
+            60,
+            "a file open on bay2 before the rule can fire",
+        )
+        edges.append(rig.edge("wec-a"))  # the rule fires when wec-a is there
+        main_log = tmp_path / "main" / "events.log"
+        line = wait_until(
+            lambda: next(
+                (x for x in main_log.read_text().splitlines() if "hub/bay2/recorder [split]" in x),
+                None,
+            ),
+            60,
+            "bay2's split, asked by the rule, in the main hub's log",
+        )
+        assert "by rule:split_everywhere@hub" in line
+        wait_until(
+            lambda: (
+                "partition hub bay3: record split for rule:split_everywhere not done: no "
+                "answer" in main_log.read_text()
+            ),
+            30,
+            "bay3's missing split as a warning",
+        )
+        for proc in (*edges, bay2, main):
+            assert proc.terminate(30) == 0, proc.output()[-3000:]

@@ -1,6 +1,7 @@
 """``fleetdaq rec``: the hub's recorder — status, start, stop, split, and snapshot (the last
 minute, written now even when nothing is being recorded). A request with a reply; each action
-is an event naming who asked."""
+is an event naming who asked. On a partitioned site the main hub passes start, stop and split on
+to every partition hub; `--partition NAME` asks that partition hub alone."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import getpass
 import json
 import socket
 import sys
+from pathlib import Path
 from typing import Any
 
 import click
@@ -45,6 +47,19 @@ def _show(reply: dict[str, Any]) -> None:
         )
     else:
         click.echo("snapshot     switched off (hub.snapshot.enabled)")
+    for name, p in sorted((reply.get("partitions") or {}).items()):
+        pr = p.get("recorder") or {}
+        if not p.get("alive"):
+            line = "gone (its nodes spool until it returns)"
+        elif not pr:
+            line = "no report yet"
+        else:
+            line = (
+                f"{pr.get('state', '?')} {pr.get('session') or '-'}, current file "
+                f"{Path(pr.get('current_file') or '-').name} "
+                f"{_size(int(pr.get('current_file_bytes') or 0))}"
+            )
+        click.echo(f"partition    {name}: {line}")
 
 
 def _common(f: Any) -> Any:
@@ -55,19 +70,18 @@ def _common(f: Any) -> Any:
     return f
 
 
-def _partition_status(config: str, connect: tuple[str, ...], name: str, as_json: bool) -> None:
-    """A partition hub's recorder, from its status request (it takes no recorder requests)."""
-    reply = hub_request(config, connect, f"partition/{name}/status", None, partition=name)
-    if as_json:
-        click.echo(json.dumps(reply, indent=2))
-    else:
-        _show(reply)
-    sys.exit(0)
-
-
-def _act(config: str, connect: tuple[str, ...], action: str, note: str, as_json: bool) -> None:
+def _act(
+    config: str,
+    connect: tuple[str, ...],
+    action: str,
+    note: str,
+    as_json: bool,
+    partition: str | None,
+) -> None:
     body = {"action": action, "note": note, "user": getpass.getuser(), "host": socket.gethostname()}
-    reply = hub_request(config, connect, "recorder", body, timeout=150.0)
+    what = f"partition/{partition}/recorder" if partition is not None else "recorder"
+    # Past the main hub's own wait for its partitions (hub.partition_recorders.ANSWER_S).
+    reply = hub_request(config, connect, what, body, timeout=150.0, partition=partition)
     if as_json:
         click.echo(json.dumps(reply, indent=2))
         sys.exit(0 if reply.get("ok") else 1)
@@ -75,6 +89,8 @@ def _act(config: str, connect: tuple[str, ...], action: str, note: str, as_json:
         fail(f"rec {action}: {reply['error']}", 2)
     if action != "status":
         click.echo(f"{action}: {reply['result']}", err=not reply["ok"])
+        for name, a in sorted((reply.get("partition_results") or {}).items()):
+            click.echo(f"  partition {name}: {a['result'] or a['error']}", err=not a["ok"])
     if action in ("status", "start", "stop"):
         _show(reply)
     sys.exit(0 if reply["ok"] else 1)
@@ -90,33 +106,30 @@ def _action(name: str, doc: str) -> None:
     @_common
     @click.option("--note", default="", help="Why (in the event and the snapshot's metadata).")
     @click.option("--json", "as_json", is_flag=True, help="The hub's whole answer as JSON.")
-    def command(config: str, connect: tuple[str, ...], note: str, as_json: bool) -> None:
-        _act(config, connect, name, note, as_json)
+    @click.option(
+        "--partition", help="Ask the partition hub NAME alone, through its router (hub.partitions)."
+    )
+    def command(
+        config: str, connect: tuple[str, ...], note: str, as_json: bool, partition: str | None
+    ) -> None:
+        _act(config, connect, name, note, as_json, partition)
 
 
-@rec.command("status")
-@_common
-@click.option("--note", default="", help="Why (in the event and the snapshot's metadata).")
-@click.option("--json", "as_json", is_flag=True, help="The hub's whole answer as JSON.")
-@click.option("--partition", help="The partition hub NAME's recorder (hub.partitions).")
-def status(
-    config: str, connect: tuple[str, ...], note: str, as_json: bool, partition: str | None
-) -> None:
-    """State, session, current file and size, files, the snapshot buffer."""
-    if partition is not None:
-        _partition_status(config, connect, partition, as_json)
-    _act(config, connect, "status", note, as_json)
-
-
+_action("status", "State, session, current file and size, files, the snapshot buffer.")
 _action(
     "start",
-    "Start recording into a new session folder.",
+    "Start recording into a new session folder (on every hub of a partitioned site).",
 )
 _action(
     "stop",
-    "Stop recording (files closed). Edges are still acked: nothing is owed while stopped.",
+    "Stop recording (files closed; on every hub of a partitioned site). Edges are still acked: "
+    "nothing is owed while stopped.",
 )
-_action("split", "Close the current file now; the next message opens the next one.")
+_action(
+    "split",
+    "Close the current file now (on every hub of a partitioned site); the next message opens "
+    "the next one.",
+)
 _action(
     "snapshot",
     "Write what the snapshot buffer holds (the last hub.snapshot.seconds) to "

@@ -318,7 +318,51 @@ def outputs(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         browser.close()
 
 
-SCENARIOS = {"tour": tour, "outputs": outputs}
+def recorder_facts(page: Page) -> dict[str, str]:
+    got: dict[str, str] = page.evaluate(
+        """() => { const dl = document.getElementById("recorder-facts"); const o = {};
+            for (let i = 0; i < dl.children.length; i += 2)
+                o[dl.children[i].textContent] = dl.children[i + 1].textContent;
+            return o; }"""
+    )
+    return got
+
+
+def partitions(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
+    """A partitioned site: the Recorder panel shows the partition hub's recorder, and a stop
+    from the page stops it too (its answer in the toast)."""
+    url, part = args["url"], f"Partition {args['partition']}"
+    with sync_playwright() as p:
+        browser = launch(p)
+        page = browser.new_page(viewport={"width": 1600, "height": 1200})
+        page.set_default_timeout(30_000)
+        page.goto(url)
+        page.get_by_role("status", name="Connection").filter(has_text="live").wait_for()
+        shows = """([k, state]) => Array.from(document.querySelectorAll("#recorder-facts dt"))
+            .some((dt) => dt.textContent === k && dt.nextSibling.textContent.startsWith(state))"""
+        page.wait_for_function(shows, arg=[part, "recording"])
+        result["before"] = recorder_facts(page)
+        login(page, args["user"], args["password"])
+        page.get_by_text(f"Logged in as {args['user']}").wait_for()
+        page.get_by_role("button", name="Stop", exact=True).click()
+        dialog = page.get_by_role("dialog")
+        result["dialog"] = dialog.inner_text()
+        dialog.get_by_role("button", name="Stop").click()
+        toast = page.get_by_role("status").filter(has_text="recorder stop:")
+        toast.wait_for()
+        result["toast"] = toast.inner_text()
+        page.wait_for_function(shows, arg=[part, "stopped"])
+        result["after"] = recorder_facts(page)
+        result["after_class"] = page.evaluate(
+            """(k) => Array.from(document.querySelectorAll("#recorder-facts dt"))
+                .find((dt) => dt.textContent === k).nextSibling.className""",
+            part,
+        )
+        page.screenshot(path=str(out / "partitions.png"), full_page=True)
+        browser.close()
+
+
+SCENARIOS = {"tour": tour, "outputs": outputs, "partitions": partitions}
 
 
 def main() -> None:

@@ -337,3 +337,78 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
     assert result["cookies"] == [{"name": "fleetdaq_session", "secure": True, "httpOnly": True}]
     events = (data / "events.log").read_text()
     assert re.search(rf"rig/valve: set 1\.5 applied.*by operator {USER}@127\.0\.0\.1", events)
+
+
+PARTS_SITE = """\
+site: webparts
+hub:
+  listen: [tcp/127.0.0.1:7447]
+  dashboard: {{enabled: true, listen: "127.0.0.1:8080", users_file: {users}}}
+  partitions:
+    bay2:
+      listen: [tcp/127.0.0.1:7448]
+      nodes: [cell]
+nodes:
+  wec:
+    streams:
+      env: {{driver: environment_sim, rate_hz: 2, channels: [{{name: air, unit: degC}}]}}
+  cell:
+    streams:
+      env: {{driver: environment_sim, rate_hz: 2, channels: [{{name: air, unit: degC}}]}}
+"""
+
+
+def test_a_stop_from_the_page_stops_every_hub_of_a_partitioned_site(tmp_path: Path):
+    """A main hub, a partition hub and an edge each: the Recorder panel shows the partition's
+    recorder, the stop's confirmation says it is for every hub, and the stop reaches the
+    partition hub (its answer in the toast, its audit naming the page's user)."""
+    needs_a_namespace()
+    users = tmp_path / "users"
+    added = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
+         "--file", str(users)],
+        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert added.returncode == 0, added.stderr
+    site = tmp_path / "site.yaml"
+    site.write_text(PARTS_SITE.format(users=users))
+
+    def fleetdaq(ns: Netns, name: str, *args: str) -> NsProc:
+        return ns.start(
+            [sys.executable, "-m", "fleetdaq", *args, "--config", str(site)],
+            tmp_path / f"{name}.log",
+        )
+
+    with Netns("parts") as ns:
+        main = fleetdaq(ns, "main", "hub", "--data", str(tmp_path / "main"))
+        bay2 = fleetdaq(ns, "bay2", "hub", "--partition", "bay2", "--data", str(tmp_path / "bay2"))
+        edges = [
+            fleetdaq(ns, node, "edge", "--node", node, "--spool", str(tmp_path / "spool"))
+            for node in ("wec", "cell")
+        ]
+        wait_until(
+            lambda: "dashboard on http://127.0.0.1:8080/" in main.output() or main.popen.poll(),
+            60,
+            "the main hub's dashboard",
+        )
+        assert main.popen.poll() is None, main.output()[-3000:]
+        result = run_browser(
+            ns,
+            tmp_path,
+            "partitions",
+            {"url": "http://127.0.0.1:8080/", "user": USER, "password": PASSWORD,
+             "partition": "bay2"},
+        )  # fmt: skip
+        for proc in (*edges, bay2, main):
+            assert proc.terminate(30) == 0, proc.output()[-3000:]
+        assert ns.close() == []
+    assert result["ok"], result.get("error")
+    assert result["after"]["State"] == "stopped"
+    assert result["after"]["Partition bay2"].startswith("stopped · ")
+    assert result["after_class"] == "bad"
+    assert "On every hub of the site." in result["dialog"]
+    assert "partition bay2: stopped; session " in result["toast"]
+    assert re.search(
+        rf"hub/bay2/recorder \[recording_stopped\]: recording stopped by {USER}@127\.0\.0\.1",
+        (tmp_path / "main" / "events.log").read_text(),
+    ), "bay2's stop, naming the page's user, in the main hub's log"

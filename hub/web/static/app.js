@@ -154,6 +154,9 @@
       detail = r.applied ? `applied, readback ${num(r.readback)}` : `refused: ${r.refusal}: ${r.message}`;
     }
     if (!detail && data.result) detail = data.result;
+    for (const [name, a] of Object.entries(data.partition_results || {})) {
+      detail += `; partition ${name}: ${a.result || a.error}`;
+    }
     toast(`${what}: ${data.ok ? "done" : "refused"}${detail ? ` — ${detail}` : ""}`, !data.ok);
     return data;
   }
@@ -459,11 +462,27 @@
       ["Snapshot buffer", snap.enabled ? `${num(snap.covers_s, 3)} s of ${num(snap.seconds, 3)} s held (${bytes(snap.held_bytes)}), ${snap.written} written${snap.last ? `, last ${snap.last.split("/").pop()}` : ""}` : "off"],
     ];
     if (r.write_errors || r.abandoned_files.length) facts.push(["Problems", `${r.write_errors} write errors, ${r.abandoned_files.length} abandoned files`]);
+    // A partitioned site: each partition hub's recorder, from its report (start, stop and split
+    // reach them all).
+    const bad = new Set(r.state === "recording" ? [] : ["State"]);
+    for (const [name, p] of Object.entries(v.partitions || {}).sort()) {
+      const pr = p.recorder || {};
+      const k = `Partition ${name}`;
+      if (!p.alive || !pr.state) {
+        facts.push([k, p.alive ? "no report yet" : "gone — its nodes spool until it returns"]);
+        bad.add(k);
+        continue;
+      }
+      const file = pr.current_file ? ` · ${pr.current_file.split("/").pop()} ${bytes(pr.current_file_bytes || 0)}` : "";
+      facts.push([k, `${pr.state} · ${pr.session || "–"}${file}`]);
+      if (pr.state !== "recording") bad.add(k);
+    }
     const dl = $("recorder-facts");
     if (dl.childElementCount !== facts.length * 2) dl.replaceChildren(...facts.flatMap(() => [el("dt"), el("dd")]));
     facts.forEach(([k, val], i) => {
       setText(dl.children[2 * i], k);
-      setText(dl.children[2 * i + 1], val, k === "State" ? (r.state === "recording" ? "ok" : "bad") : "");
+      const mark = k === "State" || k.startsWith("Partition ") ? (bad.has(k) ? "bad" : "ok") : "";
+      setText(dl.children[2 * i + 1], val, mark);
     });
     setText($("files-count"), String(r.files.length));
     const list = $("files-list");
@@ -480,7 +499,8 @@
         split: "Close the current file and go on in a new one.",
         snapshot: "Write the snapshot buffer (the last seconds of everything) to a file.",
       };
-      const got = await ask(`${b.textContent} recording?`, texts[action],
+      const every = Object.keys((S.view && S.view.partitions) || {}).length && action !== "snapshot" ? " On every hub of the site." : "";
+      const got = await ask(`${b.textContent} recording?`, texts[action] + every,
         action === "snapshot" ? [{ name: "note", label: "Note", maxLength: 500 }] : [], b.textContent);
       if (got) await act("/api/recorder", { action, ...(got.note ? { note: got.note } : {}) }, `recorder ${action}`);
     });

@@ -1,0 +1,159 @@
+"""The main hub's side of recorder requests on a partitioned site (`hub.partition_recorders`):
+a partition's answer crosses the mesh, so it is checked in full before the operator is told
+what that hub did. The real round trip (two hubs, `fleetdaq rec`) is in test_partitions.py."""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from edge.keys import SiteKeys
+from edge.messages import Event
+from hub.bus import EventBus
+from hub.partition_recorders import PartitionRecorders, parse_answer
+
+
+@pytest.mark.parametrize(
+    ("raw", "why"),
+    [
+        (b"x" * (4 * 1024 * 1024 + 1), "bytes (at most"),
+        (b"{not json", "not JSON"),
+        (b"[1, 2]", "not a JSON object"),
+        (b"{}", "ok is not true or false"),
+        (b'{"ok": 1, "result": "closed a.mcap"}', "ok is not true or false"),
+        (b'{"ok": true, "result": 5}', "result is not text"),
+        (b'{"ok": true, "result": "' + b"r" * 2001 + b'"}', "result is not text"),
+        (b'{"ok": true, "error": ["x"]}', "error is not text"),
+        (b"[" * 100_000, "not JSON"),
+    ],
+)
+def test_an_answer_that_is_not_one_is_refused_with_why(raw: bytes, why: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(why)):
+        parse_answer(raw)
+
+
+def test_an_answer_keeps_only_ok_result_and_error_and_an_error_is_never_ok() -> None:
+    full = {"ok": True, "result": "closed x.mcap", "error": "", "recorder": {"state": "recording"}}
+    assert parse_answer(json.dumps(full).encode()) == {
+        "ok": True,
+        "result": "closed x.mcap",
+        "error": "",
+    }
+    wrong = parse_answer(b'{"ok": true, "error": "unknown action"}')
+    assert wrong["ok"] is False
+
+
+# A Zenoh reply as zenoh-python hands it over: `.ok` a sample or None, `.err` the error.
+@dataclass
+class _Payload:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass
+class _Part:
+    payload: _Payload
+
+
+@dataclass
+class _Reply:
+    ok: _Part | None
+    err: _Part | None = None
+
+
+class _Session:
+    def __init__(self, replies: dict[str, list[_Reply]]) -> None:
+        self.replies = replies
+        self.asked: list[tuple[str, bytes]] = []
+
+    def get(self, key: str, payload: bytes, timeout: float) -> list[_Reply]:
+        self.asked.append((key, payload))
+        return self.replies.get(key.split("/")[-2], [])
+
+
+@dataclass
+class _Router:
+    session: _Session
+
+
+def test_each_partition_is_asked_and_a_bad_or_missing_answer_is_that_partitions_failure() -> None:
+    good = _Reply(_Part(_Payload(b'{"ok": true, "result": "stopped; session s closed"}')))
+    session = _Session(
+        {
+            "bay2": [good],
+            "bay3": [_Reply(_Part(_Payload(b"junk")))],
+            "bay4": [_Reply(None, _Part(_Payload(b"queryable failed")))],
+            # bay5: no queryable answered (its hub is down)
+        }
+    )
+    seen: list[Event] = []
+    bus = EventBus()
+    bus.subscribe("test", seen.append)
+    bus.start()
+    try:
+        asked = PartitionRecorders(
+            _Router(session),  # type: ignore[arg-type]
+            SiteKeys("parts"),
+            ["bay2", "bay3", "bay4", "bay5"],
+            bus,
+            timeout_s=3,
+        )
+        request = {"action": "stop", "user": "ana", "host": "shore", "note": ""}
+        answers: dict[str, Any] = asked.ask(request)()
+    finally:
+        bus.stop()
+    assert [k for k, _ in session.asked] == [
+        f"fleetdaq/parts/hub/partition/{n}/recorder" for n in ("bay2", "bay3", "bay4", "bay5")
+    ]
+    assert {json.loads(p)["user"] for _, p in session.asked} == {"ana"}
+    assert answers["bay2"] == {"ok": True, "result": "stopped; session s closed", "error": ""}
+    assert answers["bay3"]["ok"] is False
+    assert "its answer is not valid (not JSON)" in answers["bay3"]["error"]
+    assert answers["bay4"] == {
+        "ok": False,
+        "result": "",
+        "error": "its hub refused: queryable failed",
+    }
+    assert answers["bay5"]["error"] == "no answer within 3 s (is its hub running?)"
+    assert asked.malformed == 1
+    assert [(e.tag, e.get("partition")) for e in seen] == [("malformed", "bay3")]
+
+
+def test_passed_on_without_waiting_a_partition_that_did_not_do_it_is_a_warning() -> None:
+    """A rule's `record:` action: the answers are collected on a thread of their own."""
+    import threading
+
+    ok = _Reply(_Part(_Payload(b'{"ok": true, "result": "closed f.mcap"}')))
+    session = _Session({"bay2": [ok], "bay3": [_Reply(_Part(_Payload(b'{"ok": false}')))]})
+    seen: list[Event] = []
+    got = threading.Event()
+    bus = EventBus()
+
+    def on_event(e: Event) -> None:
+        seen.append(e)
+        got.set()
+
+    bus.subscribe("test", on_event)
+    bus.start()
+    try:
+        parts = PartitionRecorders(
+            _Router(session),  # type: ignore[arg-type]
+            SiteKeys("parts"),
+            ["bay2", "bay3"],
+            bus,
+        )
+        parts.pass_on({"action": "split", "user": "rule:layers", "host": "hub", "note": ""})
+        assert got.wait(10), "no event for bay3"
+    finally:
+        bus.stop()
+    assert len(session.asked) == 2
+    assert [(e.tag, e.get("partition"), e.get("action")) for e in seen] == [
+        ("partition_not_done", "bay3", "split")
+    ]
+    assert "record split for rule:layers not done" in seen[0].message
