@@ -11,7 +11,7 @@ from __future__ import annotations
 import ipaddress
 from typing import Annotated
 
-from pydantic import AfterValidator, Field
+from pydantic import AfterValidator, Field, model_validator
 
 from edge.schema import Float, Strict
 
@@ -94,4 +94,18 @@ class DashboardConfig(Strict):
     tls: ServerTls | None = None
     """Serve HTTPS instead of HTTP (see `ServerTls`). Without it, expose the page beyond
     this machine only behind a TLS reverse proxy."""
+    http_redirect: Listen | None = None
+    """With `tls`: also listen for plain HTTP here (``0.0.0.0:8080``) and send every request on
+    to the HTTPS address, path and query kept (307), so ``http://hub:8080`` typed from habit
+    reaches the page. Nothing else is served on it."""
     foxglove: FoxgloveConfig = FoxgloveConfig()
+
+    @model_validator(mode="after")
+    def _redirect(self) -> DashboardConfig:
+        if self.http_redirect is None:
+            return self
+        if self.tls is None:
+            raise ValueError("http_redirect sends plain HTTP on to HTTPS: it needs tls")
+        if split_listen(self.http_redirect)[1] == split_listen(self.listen)[1] != 0:
+            raise ValueError(f"http_redirect and listen share port {split_listen(self.listen)[1]}")
+        return self

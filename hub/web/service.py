@@ -69,6 +69,8 @@ class WebService:
         self.stats = WebStats()
         self.host, self.port = split_listen(self.cfg.listen)
         self.bound_port: int | None = None
+        self.redirect_port: int | None = None
+        """`http_redirect`'s port, once bound."""
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
@@ -170,13 +172,45 @@ class WebService:
         live.add_routes(app)
         runner = web.AppRunner(app, access_log=None, shutdown_timeout=5.0)
         await runner.setup()
+        runners = [runner]
         try:
             site = web.TCPSite(runner, self.host, self.port, backlog=128, ssl_context=self._ssl)
             await site.start()
             self.bound_port = int(runner.addresses[0][1])
+            if self.cfg.http_redirect is not None:
+                redirect = await self._redirect_runner(self.cfg.http_redirect)
+                runners.append(redirect)
             live.start()
             self._ready.set()
             await self._stop.wait()
             await live.close()
         finally:
+            for r in reversed(runners):
+                await r.cleanup()
+
+    async def _redirect_runner(self, listen: str) -> web.AppRunner:
+        """Plain HTTP on `listen`: every request sent on to the same path over HTTPS."""
+        tls_port = self.bound_port
+
+        async def redirect(request: web.Request) -> web.StreamResponse:
+            target: object
+            try:  # the name the person typed (the Host header), else this hub's own address
+                target = request.url.with_scheme("https").with_port(tls_port)
+            except ValueError:
+                target = self.url.rstrip("/") + str(request.rel_url)
+            self.stats.redirects += 1
+            raise web.HTTPTemporaryRedirect(str(target))
+
+        app = web.Application()
+        app.router.add_route("*", "/{tail:.*}", redirect)
+        runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        await runner.setup()
+        host, port = split_listen(listen)
+        try:
+            await web.TCPSite(runner, host, port, backlog=16).start()
+        except BaseException:
             await runner.cleanup()
+            raise
+        self.redirect_port = int(runner.addresses[0][1])
+        log.info("dashboard: plain HTTP on %s sent on to %s", listen, self.url)
+        return runner

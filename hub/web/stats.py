@@ -18,6 +18,8 @@ class WebStats:
     """Refused by the CSRF or Origin check (403)."""
     server_errors: int = 0
     """Answered 500: a bug, logged with its traceback; the service goes on."""
+    redirects: int = 0
+    """Plain HTTP requests sent on to HTTPS (`http_redirect`)."""
     actions: int = 0
     """Alarm, output and recorder actions passed on to the hub."""
     ws_clients: int = 0

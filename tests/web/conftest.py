@@ -187,16 +187,21 @@ def make_web(tmp_path: Path) -> Iterator[Callable[..., Web]]:
     started: list[tuple[WebService, EventBus, LivePlots]] = []
 
     def make(
-        open_view: bool = True, metrics: bool = True, tls: tuple[Path, Path] | None = None
+        open_view: bool = True,
+        metrics: bool = True,
+        tls: tuple[Path, Path] | None = None,
+        http_redirect: bool = False,
     ) -> Web:
-        """`tls`: serve HTTPS with this certificate and key."""
+        """`tls`: serve HTTPS with this certificate and key (`http_redirect`: and plain HTTP
+        sent on to it from any free port)."""
         users = tmp_path / "users"
         write_cheap_users(users, PASSWORDS)
         text = SITE.format(
             users=users,
             open_view=str(open_view).lower(),
             metrics=str(metrics).lower(),
-            tls=f"\n    tls: {{cert_file: {tls[0]}, key_file: {tls[1]}}}" if tls else "",
+            tls=(f"\n    tls: {{cert_file: {tls[0]}, key_file: {tls[1]}}}" if tls else "")
+            + ('\n    http_redirect: "127.0.0.1:0"' if http_redirect else ""),
         )
         site = parse_config(text, "<t>")
         bus = EventBus()

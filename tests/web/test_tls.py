@@ -98,6 +98,80 @@ def test_plain_http_and_an_untrusted_ca_get_nothing(make_web: MakeWeb, site_pki:
         web.client(tls=trusting(other)).get("/")
 
 
+def test_plain_http_on_the_redirect_port_is_sent_on_to_https(make_web: MakeWeb, site_pki: Path):
+    """`http_redirect`: what a person types from habit reaches the page; path and query kept,
+    the name they typed kept; nothing is served over plain HTTP there."""
+    web = make_web(tls=(site_pki / "hub.crt", site_pki / "hub.key"), http_redirect=True)
+    rport = web.service.redirect_port
+    assert rport is not None
+    assert rport != web.port
+
+    async def get(url: str, **kw: Any) -> tuple[int, str, str]:
+        async with (
+            aiohttp.ClientSession() as s,
+            s.get(url, allow_redirects=False, **kw) as r,
+        ):
+            return r.status, r.headers.get("Location", ""), await r.text()
+
+    status, where, body = asyncio.run(get(f"http://127.0.0.1:{rport}/metrics?x=1"))
+    assert (status, where) == (307, f"https://127.0.0.1:{web.port}/metrics?x=1")
+    assert "fleetdaq_" not in body
+    status, where, _ = asyncio.run(
+        get(f"http://127.0.0.1:{rport}/api/alarms", headers={"Host": "hub.example:80"})
+    )
+    assert (status, where) == (307, f"https://hub.example:{web.port}/api/alarms")
+
+    async def follow() -> tuple[int, str]:
+        async with (
+            aiohttp.ClientSession() as s,
+            s.get(f"http://127.0.0.1:{rport}/", ssl=trusting(site_pki / "ca.crt")) as r,
+        ):
+            return r.status, str(r.url)
+
+    assert asyncio.run(follow()) == (200, f"https://127.0.0.1:{web.port}/")
+    # HTTP/1.0 with no Host header: this hub's own address.
+    with socket.create_connection(("127.0.0.1", rport), timeout=10) as s:
+        s.sendall(b"GET /x HTTP/1.0\r\n\r\n")
+        got = b""
+        while chunk := s.recv(4096):
+            got += chunk
+    assert got.startswith(b"HTTP/1.0 307") or got.startswith(b"HTTP/1.1 307"), got[:200]
+    assert b"Location: https://" in got, got[:400]
+    assert web.service.stats.redirects == 4
+
+
+@pytest.mark.parametrize(
+    ("extra", "why"),
+    [
+        (
+            'http_redirect: "127.0.0.1:8080"',
+            "http_redirect sends plain HTTP on to HTTPS: it needs tls",
+        ),
+        (
+            'http_redirect: "0.0.0.0:8443"\n    tls: {cert_file: c, key_file: k}',
+            "http_redirect and listen share port 8443",
+        ),
+    ],
+)
+def test_a_redirect_without_tls_or_on_the_same_port_is_one_line(
+    tmp_path: Path, extra: str, why: str
+) -> None:
+    site = tmp_path / "site.yaml"
+    site.write_text(
+        "site: t\nhub:\n  dashboard:\n    enabled: true\n    listen: 0.0.0.0:8443\n"
+        f"    {extra}\nnodes: {{}}\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "check", str(site)],
+        capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert "hub.dashboard" in lines[0]
+    assert why in lines[0]
+
+
 def _encrypted_copy(key: Path, out: Path) -> Path:
     k = serialization.load_pem_private_key(key.read_bytes(), None)
     out.write_bytes(
