@@ -18,6 +18,7 @@ from typing import Any
 
 from edge.threads import NamedThread
 from edge.wire import BatchHeader
+from hub.bus import worth_telling
 
 log = logging.getLogger("fleetdaq.feed")
 
@@ -79,7 +80,7 @@ class FeedConsumer:
                 self.handled += 1
             except Exception:
                 self.errors += 1
-                if self.errors <= 10 or self.errors % 1000 == 0:
+                if worth_telling(self.errors, first=10):
                     log.exception("batch consumer %s failed (%d so far)", self.name, self.errors)
 
     @property

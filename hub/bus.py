@@ -25,6 +25,15 @@ from edge.threads import NamedThread
 log = logging.getLogger("fleetdaq.bus")
 
 Handler = Callable[[Event], None]
+
+
+def worth_telling(count: int, first: int = 1) -> bool:
+    """Whether the `count`-th of a repeated problem (malformed payloads, failed writes) is said
+    again, as an event or a log line: the first `first`, then every 1000th, each with the count
+    so far. Enough to know it goes on; never a flood."""
+    return count <= first or count % 1000 == 0
+
+
 _STOP = object()
 _FLUSH = object()
 
@@ -113,7 +122,7 @@ class Subscription:
                 self.delivered += 1
             except Exception:
                 self.errors += 1
-                if self.errors <= 10 or self.errors % 1000 == 0:
+                if worth_telling(self.errors, first=10):
                     log.exception("bus subscriber %s failed on an event (%d so far)", self.name,
                                   self.errors)  # fmt: skip
 

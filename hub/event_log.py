@@ -12,7 +12,7 @@ from collections import deque
 from pathlib import Path
 
 from edge.messages import Event
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.read_model import ReadModel
 
 log = logging.getLogger("fleetdaq.events")
@@ -35,7 +35,7 @@ class _QuietRotatingFile(logging.handlers.RotatingFileHandler):
         self.write_failures += 1
         self.last_error = str(sys.exc_info()[1])
         n = self.write_failures
-        if n == 1 or n % 1000 == 0:
+        if worth_telling(n):
             log.error("events.log cannot be written: %s (%d so far)", self.last_error, n)
 
 

@@ -24,7 +24,7 @@ from edge.errors import WireError
 from edge.keys import Kind, SiteKeys
 from edge.messages import NODE_HEALTH_TYPE, Event, NodeHealth
 from edge.wire import plausible_time
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.read_model import NodeView, ReadModel
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
@@ -158,7 +158,7 @@ class NodeWatch:
             self._malformed[node] = n
             malformed = tuple(sorted(self._malformed.items()))
         self.model.put("malformed", malformed)
-        if n == 1 or n % 1000 == 0:
+        if worth_telling(n):
             self.bus.emit(
                 logging.WARNING,
                 "hub",

@@ -48,7 +48,7 @@ from edge.messages import Event
 from edge.paths import default_data_dir
 from edge.systemd import Systemd
 from edge.threads import NamedThread
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
 from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
@@ -446,7 +446,7 @@ class PartitionWatch:
             recorder = dict(report["recorder"])
         except (ValueError, TypeError, KeyError) as err:
             self.malformed += 1
-            if self.malformed == 1 or self.malformed % 1000 == 0:
+            if worth_telling(self.malformed):
                 self.bus.emit(
                     logging.WARNING,
                     "hub",

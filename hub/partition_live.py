@@ -28,7 +28,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.wire import BatchDecoder, SampleFormat
 from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.foxglove.service import FoxgloveLive
 from hub.live_plots import LivePlots
 from hub.router import Router
@@ -141,7 +141,7 @@ class PartitionLive:
                         raise WireError(f"payload says {h.node}/{h.stream}")
                 except (WireError, ValueError, TypeError) as err:  # whatever the bytes were
                     self.malformed += 1
-                    if self.malformed == 1 or self.malformed % 1000 == 0:
+                    if worth_telling(self.malformed):
                         self.bus.emit(
                             logging.WARNING,
                             "partition-live",

@@ -26,7 +26,7 @@ from typing import Any
 
 from edge.keys import SiteKeys
 from edge.threads import NamedThread
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.hub")
@@ -136,7 +136,7 @@ class PartitionRecorders:
                 return parse_answer(reply.ok.payload.to_bytes())
             except ValueError as err:
                 self.malformed += 1
-                if self.malformed == 1 or self.malformed % 1000 == 0:
+                if worth_telling(self.malformed):
                     self.bus.emit(
                         logging.WARNING,
                         "hub",

@@ -20,7 +20,7 @@ import logging
 from typing import Any
 
 from edge.keys import SiteKeys
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.router import Router
 from hub.snapshots import SnapshotBuffer
 
@@ -115,7 +115,7 @@ class PartitionSnapshots:
             trigger = parse_trigger(sample.payload.to_bytes())
         except ValueError as err:
             self.malformed += 1
-            if self.malformed == 1 or self.malformed % 1000 == 0:
+            if worth_telling(self.malformed):
                 self.bus.emit(
                     logging.WARNING,
                     "snapshots",

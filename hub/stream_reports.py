@@ -9,7 +9,7 @@ import logging
 import time
 
 from edge.errors import WireError
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.stream_stats import StreamStats
 
 REPORT_EVERY_S = 60.0
@@ -23,7 +23,7 @@ class StreamReports:
 
     def malformed(self, st: StreamStats, err: WireError) -> None:
         st.malformed += 1
-        if st.malformed == 1 or st.malformed % 1000 == 0:
+        if worth_telling(st.malformed):
             self.bus.emit(
                 logging.WARNING,
                 "recorder",
@@ -81,7 +81,7 @@ class StreamReports:
             st.epoch = epoch
             return
         lost = st.restart(epoch)
-        if st.spool_restarts <= 10 or st.spool_restarts % 1000 == 0:  # two edges, one name
+        if worth_telling(st.spool_restarts, first=10):  # two edges, one name
             self.bus.emit(
                 logging.WARNING,
                 "recorder",

@@ -20,6 +20,7 @@ from edge.keys import SiteKeys
 from edge.messages import Event, make_event
 from edge.wire import BatchEncoder, decode_u64, encode_u64
 from edge.zenoh_session import client_config
+from hub.bus import worth_telling
 from hub.errors import RouterError
 from hub.runtime import HubRuntime
 from hub.services import ServiceStack
@@ -64,6 +65,12 @@ class Part:
 
     def failure(self) -> str | None:
         return None
+
+
+def test_a_repeated_problem_is_told_at_first_then_every_1000th():
+    told = [n for n in range(1, 5001) if worth_telling(n)]
+    assert told == [1, 1000, 2000, 3000, 4000, 5000]
+    assert [n for n in range(1, 2001) if worth_telling(n, first=10)] == [*range(1, 11), 1000, 2000]
 
 
 def test_services_start_in_order_and_stop_in_reverse():

@@ -18,6 +18,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from hub.bus import worth_telling
+
 log = logging.getLogger("fleetdaq.alarms")
 
 
@@ -98,7 +100,7 @@ class Journal:
         as torn when the journal is read)."""
         self.write_errors += 1
         self.last_error = str(err)
-        if self.write_errors == 1 or self.write_errors % 1000 == 0:
+        if worth_telling(self.write_errors):
             log.error("alarm journal %s: %s (%d so far)", self.path, err, self.write_errors)
         with contextlib.suppress(OSError):
             self._fh.close()

@@ -35,7 +35,7 @@ from edge.threads import NamedThread
 from edge.wire import batch_values, plausible_time
 from hub import server_tls
 from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
+from hub.bus import EventBus, worth_telling
 from hub.errors import HubError
 from hub.foxglove import diagnostics
 from hub.foxglove.decimate import INTERVAL_NS, Decimator
@@ -306,7 +306,7 @@ class FoxgloveLive:
                     self._publish_state()
             except Exception:
                 self.counts["errors"] += 1
-                if self.counts["errors"] <= 10 or self.counts["errors"] % 1000 == 0:
+                if worth_telling(self.counts["errors"], first=10):
                     log.exception("Foxglove live view: tick failed")
 
     def _publish_state(self) -> None:

@@ -39,6 +39,7 @@ from typing import Any
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from edge.config.dashboard import DashboardConfig
+from hub.bus import worth_telling
 from hub.live_plots import PlotFollower
 from hub.web import frames, jsontext
 from hub.web.api import Api, fail
@@ -358,7 +359,7 @@ class Live:
             tick()
         except Exception:
             self.stats.tick_errors += 1
-            if self.stats.tick_errors <= 10 or self.stats.tick_errors % 1000 == 0:
+            if worth_telling(self.stats.tick_errors, first=10):
                 log.exception("dashboard: a live update failed (%d so far)",
                               self.stats.tick_errors)  # fmt: skip
         setattr(self.stats, cpu, getattr(self.stats, cpu) + time.thread_time() - t0)
