@@ -7,10 +7,11 @@ same checks and events). The main hub asks every partition there whenever it is 
 stop or split (`fleetdaq rec`, the dashboard): the partitions are asked first, all at once, then
 the main hub acts, then their answers are collected. The main hub's reply carries each
 partition's answer, and is `ok` only when every hub's is. A partition that does not answer (its
-hub is down) is said by name; the other hubs have acted all the same. A rule's `record:` action
-is passed on the same way, without waiting: a partition that did not do it is a warning event.
-Snapshots reach the partitions by their trigger instead (`hub.partition_snapshots`), alarms'
-included.
+hub is down) is said by name; the other hubs have acted all the same. A snapshot asked of the
+main hub goes the same way, so its reply names every hub's file. A rule's `record:` start, stop
+or split is passed on without waiting: a partition that did not do it is a warning event. A
+rule's snapshot and an alarm's reach the partitions by their trigger
+(`hub.partition_snapshots`).
 
 An answer comes from another machine across the mesh: it is checked in full (size, a JSON
 object, `ok` a boolean, `result` and `error` bounded text); anything else is that partition's
@@ -31,8 +32,8 @@ from hub.router import Router
 
 log = logging.getLogger("fleetdaq.hub")
 
-FORWARDED = ("start", "stop", "split")
-"""What the main hub passes on. `status` is each partition's report; `snapshot` its trigger."""
+FORWARDED = ("start", "stop", "split", "snapshot")
+"""What the main hub passes on (`status` is each partition's report)."""
 ANSWER_S = 120.0
 """How long the main hub waits for a partition's answer (a stop closes and fsyncs its file)."""
 MAX_ANSWER_BYTES = 4 * 1024 * 1024

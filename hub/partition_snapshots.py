@@ -1,13 +1,15 @@
 """Snapshots on a partitioned site: each partition hub keeps a snapshot buffer of its own slice
-(the main hub's holds only the main hub's), and takes a snapshot whenever the main hub is asked
-for one or sees an alarm that may take one.
+(the main hub's holds only the main hub's), and takes a snapshot whenever the main hub takes
+one for a rule or sees an alarm that may take one. (A snapshot an operator asks the main hub
+for reaches the partitions as a recorder request instead, so the reply can name every file:
+`hub.partition_recorders`.)
 
 The main hub puts each trigger on ``fleetdaq/<site>/hub/snapshot/trigger`` (`SnapshotTriggers`,
 told by its `SnapshotBuffer`); every partition hub takes it (`PartitionSnapshots`) and acts as
-its own buffer would: a request is written at once, an alarm only while its recorder is not
-writing and not within `min_interval_s` of the last. Each snapshot is an event of the hub that
-wrote it (a partition's reach the main hub's event log like all its events), so an operator
-sees where every file went.
+its own buffer would: a request (a rule's) is written at once, an alarm only while its recorder
+is not writing and not within `min_interval_s` of the last. Each snapshot is an event of the
+hub that wrote it (a partition's reach the main hub's event log like all its events), so an
+operator sees where every file went.
 
 A trigger is a small JSON object; anything else on the key is counted, raised as an event (the
 first, then every 1000th) and dropped.

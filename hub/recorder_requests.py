@@ -65,7 +65,9 @@ class RecorderRequests(RequestService):
         except BadRequest as err:
             return self._answer(False, str(err), "")
         collect = None
-        if self.partitions is not None and action in FORWARDED:
+        # A snapshot buffer switched off is off on every hub of the site: nobody to ask.
+        asks = action in FORWARDED and (action != "snapshot" or self.snapshot is not None)
+        if self.partitions is not None and asks:
             # Asked first and all at once; they act while this hub does.
             collect = self.partitions.ask(
                 {"action": action, "user": req.get("user") or "unknown",

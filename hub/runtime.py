@@ -153,7 +153,7 @@ class HubRuntime:
             self.keys,
             self.recorder,
             self.snapshot,
-            self.snapshots.snapshot if self.snapshots is not None else None,
+            self._asked_snapshot if self.snapshots is not None else None,
             site.security,
             partitions=(
                 PartitionRecorders(self.router, self.keys, list(site.hub.partitions), self.bus)
@@ -229,10 +229,16 @@ class HubRuntime:
         self.systemd = Systemd()
         """systemd's READY, STATUS and watchdog (the recorder's writer must keep moving)."""
 
+    def _asked_snapshot(self, who: str, note: str) -> tuple[bool, str]:
+        """`fleetdaq rec snapshot` and the dashboard: the partitions are asked by the recorder
+        requests themselves (their files named in the reply), not sent the trigger."""
+        assert self.snapshots is not None
+        return self.snapshots.snapshot(who, note, tell=not self.site.hub.partitions)
+
     def _record_action(self, action: str, who: str) -> str:
         """A rule's `record:` action (start, stop and split reach every partition hub too)."""
         parts = self.recorder_requests.partitions
-        if parts is not None and action in FORWARDED:
+        if parts is not None and action in FORWARDED and action != "snapshot":  # its trigger
             parts.pass_on({"action": action, "user": who, "host": "hub", "note": ""})
         if action == "split":
             return self.recorder.split(who)

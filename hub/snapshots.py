@@ -208,12 +208,14 @@ class SnapshotBuffer:
 
     # --- writing ---------------------------------------------------------------------------------
 
-    def snapshot(self, who: str, note: str = "") -> tuple[bool, str]:
-        """Write what is held now (a request: waits for the file). (written, path or why not)."""
+    def snapshot(self, who: str, note: str = "", tell: bool = True) -> tuple[bool, str]:
+        """Write what is held now (a request: waits for the file). (written, path or why not).
+        `tell`: pass it on to `on_trigger` (off when the caller asks the partitions itself)."""
         pool = self._pool
         if pool is None:
             return False, "the hub is not running"
-        self._tell({"kind": "request", "who": who, "note": note})
+        if tell:
+            self._tell({"kind": "request", "who": who, "note": note})
         try:
             return pool.submit(self._write, f"requested by {who}", who, note).result(WAIT_S)
         except FutureTimeout:

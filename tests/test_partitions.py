@@ -403,9 +403,10 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
 
 
 def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: Path):
-    """`fleetdaq rec snapshot` asks the main hub; each partition hub keeps a buffer of its own
-    slice and writes it too, and its event (with where the file went) reaches the main hub's
-    log. Junk on the trigger key is refused and said, never taken."""
+    """`fleetdaq rec snapshot` asks the main hub, which asks each partition hub: each keeps a
+    buffer of its own slice and writes it too; the reply names every hub's file, and the
+    partition's event reaches the main hub's log. Junk on the trigger key (what rules and
+    alarms use) is refused and said, never taken."""
     from fleetdaq.analysis.errors import UnknownStream
     from fleetdaq.read import read_stream
 
@@ -428,11 +429,9 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
             cwd=REPO, capture_output=True, text=True, timeout=200, check=False,
         )  # fmt: skip
         assert r.returncode == 0, r.stdout + r.stderr
-        bay2_view = wait_until(
-            lambda: (v := (rig.bay2_status() or {}).get("snapshots") or {}).get("written") and v,
-            60,
-            "bay2's snapshot",
-        )
+        bay2_view = (rig.bay2_status() or {}).get("snapshots") or {}
+        assert bay2_view["written"] == 1  # written before the main hub replied
+        assert f"partition bay2: {bay2_view['last']}" in r.stdout, "the reply names its file"
         main_view = (rig.client.status() or {})["snapshots"]
         assert main_view["written"] == 1
         ours = read_stream(Path(bay2_view["last"]), "cell-a/wave")
@@ -443,10 +442,11 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
         assert read_stream(Path(main_view["last"]), "wec-a/wave").data.shape[0] >= 1000
         main_log = tmp_path / "main" / "events.log"
         wait_until(
-            lambda: "on the main hub): before the storm" in main_log.read_text(),
+            lambda: f"written to {bay2_view['last']} (requested by " in main_log.read_text(),
             30,
             "bay2's snapshot event in the main hub's log",
         )
+        assert "): before the storm" in main_log.read_text()
         events = main_log.read_text()
         assert "refused a snapshot trigger that is not one (kind 'wipe'" in events
         for proc in (*edges, bay2, main):
@@ -554,7 +554,8 @@ def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_sa
     tmp_path: Path,
 ):
     """A rule's `record: split` on the main hub splits every partition hub's file too, without
-    the rule waiting on another machine; a partition hub that is down is a warning event."""
+    the rule waiting on another machine; a partition hub that is down is a warning event. Its
+    `record: snapshot` reaches the partition hubs by the snapshot trigger."""
     with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
         bay3 = free_port()
         text = rig.cfg.read_text().replace(
@@ -566,7 +567,7 @@ def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_sa
         text += (
             "rules:\n  split_everywhere:\n"
             "    when: {node: wec-a, alive: true}\n"
-            "    do: [{record: split}]\n"
+            "    do: [{record: split}, {record: snapshot}]\n"
         )
         rig.cfg.write_text(text)
         main = rig.main_hub()
@@ -595,6 +596,16 @@ def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_sa
             ),
             30,
             "bay3's missing split as a warning",
+        )
+        # The rule's snapshot reaches bay2 by the trigger (as an alarm's does).
+        wait_until(
+            lambda: any(
+                "hub/bay2/recorder [snapshot]" in x
+                and "(requested by rule:split_everywhere on the main hub)" in x
+                for x in main_log.read_text().splitlines()
+            ),
+            60,
+            "bay2's snapshot, triggered by the rule, in the main hub's log",
         )
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]

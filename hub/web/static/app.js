@@ -499,7 +499,7 @@
         split: "Close the current file and go on in a new one.",
         snapshot: "Write the snapshot buffer (the last seconds of everything) to a file.",
       };
-      const every = Object.keys((S.view && S.view.partitions) || {}).length && action !== "snapshot" ? " On every hub of the site." : "";
+      const every = Object.keys((S.view && S.view.partitions) || {}).length ? " On every hub of the site." : "";
       const got = await ask(`${b.textContent} recording?`, texts[action] + every,
         action === "snapshot" ? [{ name: "note", label: "Note", maxLength: 500 }] : [], b.textContent);
       if (got) await act("/api/recorder", { action, ...(got.note ? { note: got.note } : {}) }, `recorder ${action}`);
