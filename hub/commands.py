@@ -10,7 +10,6 @@ only the caller's thread: operators' requests run on a small pool, never on a Ze
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -33,12 +32,11 @@ from edge.messages import (
 from hub.bus import EventBus
 from hub.read_model import HubView, ReadModel, to_jsonable
 from hub.recorder import Recorder
-from hub.requests import Caller, OperatorQueryable, as_caller
+from hub.requests import Caller, OperatorQueryable, as_caller, parse_object
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.commands")
 
-MAX_REQUEST_BYTES = 64 * 1024
 Blocked = Callable[[str, str], str | None]
 """blocked(node, output): the name of a hub interlock holding that output, or None."""
 
@@ -258,18 +256,8 @@ class CommandService:
 
     @staticmethod
     def _parse(raw: bytes) -> dict[str, Any]:
-        if len(raw) > MAX_REQUEST_BYTES:
-            raise ValueError(f"a request of {len(raw)} bytes (at most {MAX_REQUEST_BYTES})")
-        try:
-            req = json.loads(raw or b"{}")
-        except (ValueError, RecursionError):
-            raise ValueError("the request is not JSON") from None
-        if not isinstance(req, dict):
-            raise ValueError("the request is not a JSON object")
-        allowed = {"action", "output", "value", "pulse_s", "reason", "user", "host", "command_id"}
-        unknown = set(req) - allowed
-        if unknown:
-            raise ValueError(f"unknown field(s): {', '.join(sorted(unknown))}")
+        allowed = ("action", "output", "value", "pulse_s", "reason", "user", "host", "command_id")
+        req = parse_object(raw, allowed)
         action = req.get("action", "list")
         if action != "list" and action not in ACTIONS:
             raise ValueError(f"unknown action {action!r} (one of list, {', '.join(ACTIONS)})")

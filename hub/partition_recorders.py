@@ -28,6 +28,7 @@ from typing import Any
 from edge.keys import SiteKeys
 from edge.threads import NamedThread
 from hub.bus import EventBus, worth_telling
+from hub.requests import json_object
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.hub")
@@ -47,14 +48,7 @@ def recorder_key(keys: SiteKeys, partition: str) -> str:
 
 def parse_answer(raw: bytes) -> dict[str, Any]:
     """A partition's answer reduced to ``{ok, result, error}``; ValueError says what is wrong."""
-    if len(raw) > MAX_ANSWER_BYTES:
-        raise ValueError(f"{len(raw)} bytes (at most {MAX_ANSWER_BYTES})")
-    try:
-        obj: Any = json.loads(raw)
-    except (ValueError, RecursionError):
-        raise ValueError("not JSON") from None
-    if not isinstance(obj, dict):
-        raise ValueError("not a JSON object")
+    obj = json_object(raw, MAX_ANSWER_BYTES)
     if not isinstance(obj.get("ok"), bool):
         raise ValueError("ok is not true or false")
     out: dict[str, Any] = {"ok": obj["ok"]}

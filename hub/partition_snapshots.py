@@ -23,6 +23,7 @@ from typing import Any
 
 from edge.keys import SiteKeys
 from hub.bus import EventBus, worth_telling
+from hub.requests import json_object
 from hub.router import Router
 from hub.snapshots import SnapshotBuffer
 
@@ -61,14 +62,7 @@ class SnapshotTriggers:
 
 def parse_trigger(raw: bytes) -> dict[str, str]:
     """A trigger as sent by `SnapshotTriggers`, checked in full; ValueError says what is wrong."""
-    if len(raw) > MAX_TRIGGER_BYTES:
-        raise ValueError(f"{len(raw)} bytes (at most {MAX_TRIGGER_BYTES})")
-    try:
-        obj: Any = json.loads(raw)
-    except (ValueError, RecursionError):
-        raise ValueError("not JSON") from None
-    if not isinstance(obj, dict):
-        raise ValueError("not a JSON object")
+    obj = json_object(raw, MAX_TRIGGER_BYTES)
     allowed = {"alarm": {"kind", "alarm"}, "request": {"kind", "who", "note"}}
     kind = obj.get("kind")
     if kind not in allowed:

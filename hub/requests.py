@@ -30,16 +30,27 @@ class BadRequest(ValueError):
     pass
 
 
+def json_object(raw: bytes, max_bytes: int, empty: bytes = b"") -> dict[str, Any]:
+    """`raw` as a JSON object of at most `max_bytes` (`empty` stands for no payload); the
+    ValueError says what it is instead: ``N bytes (at most M)``, ``not JSON`` (nesting too deep
+    included), ``not a JSON object``. Whatever crosses the network is parsed this way first."""
+    if len(raw) > max_bytes:
+        raise ValueError(f"{len(raw)} bytes (at most {max_bytes})")
+    try:
+        obj = json.loads(raw or empty)
+    except (ValueError, RecursionError):
+        raise ValueError("not JSON") from None
+    if not isinstance(obj, dict):
+        raise ValueError("not a JSON object")
+    return obj
+
+
 def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
     """The request as a dict: at most 64 KiB, a JSON object, only `allowed` keys."""
-    if len(raw) > MAX_REQUEST_BYTES:
-        raise BadRequest(f"a request of {len(raw)} bytes (at most {MAX_REQUEST_BYTES})")
     try:
-        req = json.loads(raw or b"{}")
-    except (ValueError, RecursionError):
-        raise BadRequest("the request is not JSON") from None
-    if not isinstance(req, dict):
-        raise BadRequest("the request is not a JSON object")
+        req = json_object(raw, MAX_REQUEST_BYTES, empty=b"{}")
+    except ValueError as err:
+        raise BadRequest(f"the request is {err}") from None
     unknown = set(req) - set(allowed)
     if unknown:
         raise BadRequest(f"unknown field(s): {', '.join(sorted(map(str, unknown)))}")

@@ -11,7 +11,6 @@ Reply: ``{"ok": bool, "error": text, "results": [{"name", "done", "state" or "re
 from __future__ import annotations
 
 import fnmatch
-import json
 import logging
 from typing import Any
 
@@ -20,35 +19,17 @@ from edge.keys import SiteKeys
 from hub.alarms.states import UNACKED, State
 from hub.alarms.supervisor import Supervisor
 from hub.read_model import to_jsonable
-from hub.requests import BadRequest, Caller, RequestService, as_caller
+from hub.requests import BadRequest, Caller, RequestService, as_caller, parse_object, text
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.alarms")
 
 ACTIONS = ("list", "ack", "shelve", "unshelve", "disable", "enable")
-MAX_REQUEST_BYTES = 64 * 1024
 MAX_SHELVE_S = 30 * 24 * 3600.0
 
 
-def _text(req: dict[str, Any], key: str, limit: int = 500) -> str:
-    value = req.get(key, "")
-    if not isinstance(value, str) or len(value) > limit:
-        raise BadRequest(f"{key} must be text of at most {limit} characters")
-    return value
-
-
 def parse_request(raw: bytes) -> dict[str, Any]:
-    if len(raw) > MAX_REQUEST_BYTES:
-        raise BadRequest(f"a request of {len(raw)} bytes (at most {MAX_REQUEST_BYTES})")
-    try:
-        req = json.loads(raw or b"{}")
-    except (ValueError, RecursionError):
-        raise BadRequest("the request is not JSON") from None
-    if not isinstance(req, dict):
-        raise BadRequest("the request is not a JSON object")
-    unknown = set(req) - {"action", "names", "all", "for_s", "note", "user", "host"}
-    if unknown:
-        raise BadRequest(f"unknown field(s): {', '.join(sorted(unknown))}")
+    req = parse_object(raw, ("action", "names", "all", "for_s", "note", "user", "host"))
     action = req.get("action", "list")
     if action not in ACTIONS:
         raise BadRequest(f"unknown action {action!r} (one of {', '.join(ACTIONS)})")
@@ -71,9 +52,9 @@ def parse_request(raw: bytes) -> dict[str, Any]:
         "names": names,
         "all": bool(req.get("all", False)),
         "for_s": float(for_s),
-        "note": _text(req, "note"),
-        "user": _text(req, "user", 100) or "unknown",
-        "host": _text(req, "host", 255) or "unknown",
+        "note": text(req, "note"),
+        "user": text(req, "user", 100, "unknown"),
+        "host": text(req, "host", 255, "unknown"),
     }
 
 
