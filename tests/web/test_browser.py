@@ -50,6 +50,16 @@ def needs_a_namespace() -> None:
     ensure_chromium()
 
 
+def add_user(users: Path) -> None:
+    """`fleetdaq users add USER` into the file `users`, as an operator would."""
+    added = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
+         "--file", str(users)],
+        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert added.returncode == 0, added.stderr
+
+
 def start_demo_and_wait_for_login(ns: Netns, tmp: Path, data: Path) -> tuple[NsProc, str, str]:
     demo = ns.start(
         [sys.executable, "-m", "fleetdaq", "demo", "--data", str(data), "--json"],
@@ -94,12 +104,7 @@ def tour(tmp_path_factory: pytest.TempPathFactory) -> Tour:
     with Netns("tour") as ns:
         demo, url, demo_password = start_demo_and_wait_for_login(ns, tmp, data)
         # A user added with the command line while the hub runs: the hub reads the file again.
-        added = subprocess.run(
-            [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
-             "--file", str(data / "dashboard-users")],
-            input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
-        )  # fmt: skip
-        assert added.returncode == 0, added.stderr
+        add_user(data / "dashboard-users")
         result = run_browser(
             ns,
             tmp,
@@ -291,12 +296,7 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
 
     pki.init(tmp_path / "pki", "webout", ["127.0.0.1"])
     data, users = tmp_path / "data", tmp_path / "users"
-    added = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
-         "--file", str(users)],
-        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
-    )  # fmt: skip
-    assert added.returncode == 0, added.stderr
+    add_user(users)
     site = tmp_path / "site.yaml"
     site.write_text(OUTPUT_SITE.format(users=users, pki=tmp_path / "pki"))
     checked = subprocess.run(
@@ -364,12 +364,7 @@ def test_a_stop_from_the_page_stops_every_hub_of_a_partitioned_site(tmp_path: Pa
     partition hub (its answer in the toast, its audit naming the page's user)."""
     needs_a_namespace()
     users = tmp_path / "users"
-    added = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
-         "--file", str(users)],
-        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
-    )  # fmt: skip
-    assert added.returncode == 0, added.stderr
+    add_user(users)
     site = tmp_path / "site.yaml"
     site.write_text(PARTS_SITE.format(users=users))
 
