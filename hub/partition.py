@@ -54,10 +54,18 @@ from hub.hub_health import HubHealth
 from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
 from hub.partition_recorders import recorder_key
 from hub.partition_snapshots import PartitionSnapshots
-from hub.read_model import HubView, ReadModel, StreamView, to_jsonable
+from hub.read_model import (
+    HubView,
+    ReadModel,
+    RecorderView,
+    StreamView,
+    from_jsonable,
+    to_jsonable,
+)
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
+from hub.requests import json_object
 from hub.router import Router
 from hub.services import ServiceStack
 from hub.snapshots import SnapshotBuffer
@@ -435,23 +443,26 @@ class PartitionWatch:
             return
         payload = sample.payload.to_bytes()
         try:
-            if len(payload) > MAX_PAYLOAD_BYTES:
-                raise ValueError(f"{len(payload)} bytes")
-            report = json.loads(payload)
+            report = json_object(payload, MAX_PAYLOAD_BYTES)
+            unknown = set(report) - {"partition", "time_ns", "streams", "recorder"}
+            if unknown:
+                raise ValueError(f"unknown field(s) {sorted(unknown)[:5]}")
+            if not isinstance(report.get("streams"), list):
+                raise ValueError("streams is not a list")
+            # Checked field by field: /metrics, the dashboard and `fleetdaq status` use them.
+            views = [from_jsonable(StreamView, s) for s in report["streams"]]
             streams = tuple(
-                dataclasses.replace(StreamView(**s), hub=name)
-                for s in report["streams"]
-                if s["node"] in self.owned[name]
+                dataclasses.replace(s, hub=name) for s in views if s.node in self.owned[name]
             )
-            recorder = dict(report["recorder"])
-        except (ValueError, TypeError, KeyError) as err:
+            recorder = to_jsonable(from_jsonable(RecorderView, report.get("recorder")))
+        except ValueError as err:
             self.malformed += 1
             if worth_telling(self.malformed):
                 self.bus.emit(
                     logging.WARNING,
                     "hub",
                     "malformed",
-                    f"partition hub {name}: refused a report that is not valid ({err!r}); "
+                    f"partition hub {name}: refused a report that is not valid ({err}); "
                     f"{self.malformed} so far",
                     partition=name,
                 )

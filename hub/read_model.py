@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import math
 import threading
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -173,3 +174,56 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, bytes):
         return value.hex()
     return value
+
+
+MAX_JSON_TEXT = 4096
+MAX_JSON_ITEMS = 100_000
+_INT_LIMIT = 1 << 63
+
+
+def from_jsonable(cls: type[Any], obj: Any) -> Any:
+    """The view `cls` (a dataclass of str, bool, int, float, ``X | None`` and ``tuple[str,
+    ...]`` fields) from a JSON object another hub sent, checked in full: only its fields, each
+    of its type (ints within 64 bits, text and lists bounded; a float may be null, as
+    `to_jsonable` writes NaN). ValueError says which field is wrong. The reverse of
+    `to_jsonable` for these views."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{cls.__name__}: not a JSON object")
+    hints = typing.get_type_hints(cls)
+    unknown = set(obj) - set(hints)
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(map(str, unknown))[:5]}")
+    values = {k: _checked(v, hints[k], f"{cls.__name__}.{k}") for k, v in obj.items()}
+    try:
+        return cls(**values)
+    except TypeError as err:  # a field without a default missing
+        raise ValueError(f"{cls.__name__}: {err}") from None
+
+
+def _checked(value: Any, hint: Any, where: str) -> Any:
+    args = typing.get_args(hint)
+    if type(None) in args:  # X | None
+        if value is None:
+            return None
+        (hint,) = [a for a in args if a is not type(None)]
+    if hint is bool and isinstance(value, bool):
+        return value
+    if hint is int and type(value) is int and -_INT_LIMIT < value < _INT_LIMIT:
+        return value
+    if hint is float:
+        if value is None:
+            return math.nan
+        if type(value) in (int, float) and abs(value) < _INT_LIMIT:
+            return float(value)
+    if hint is str and isinstance(value, str) and len(value) <= MAX_JSON_TEXT:
+        return value
+    listed = typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...)
+    if listed and isinstance(value, list) and len(value) <= MAX_JSON_ITEMS:
+        return tuple(_checked(v, str, f"{where}[]") for v in value)
+    wanted = {
+        bool: "true or false",
+        int: "an integer within 64 bits",
+        float: "a number within 64 bits",
+        str: f"text of at most {MAX_JSON_TEXT} characters",
+    }.get(hint, f"a list of at most {MAX_JSON_ITEMS} texts")
+    raise ValueError(f"{where}: {type(value).__name__} is not {wanted}")

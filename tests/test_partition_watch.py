@@ -1,0 +1,152 @@
+"""The main hub's view of a partition hub's report (`hub.partition.PartitionWatch`): the report
+crosses the LAN (with no ACL, anyone there can put on its key), and what it says goes into
+`/metrics`, the dashboard and `fleetdaq status`, so it is checked field by field
+(`hub.read_model.from_jsonable`) and refused whole when anything is wrong."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from edge.config.load import parse_config
+from edge.messages import Event
+from hub.bus import EventBus
+from hub.metrics import render_metrics
+from hub.partition import PartitionWatch
+from hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable
+
+SITE = """\
+site: parts
+hub:
+  listen: [tcp/127.0.0.1:7447]
+  partitions:
+    bay2: {listen: [tcp/127.0.0.1:7448], nodes: ["cell-*"]}
+nodes:
+  cell-a:
+    streams:
+      wave: {driver: wave_sim, rate_hz: 10, channels: [{name: c0}]}
+"""
+
+STREAM = StreamView(
+    node="cell-a", stream="wave", recorded=True, rate_hz=10.0, scan_rate=9.98, batches=12,
+    scans=120, first_sequence=0, last_sequence=11, acked=11, last_receive_ns=time.time_ns(),
+)  # fmt: skip
+RECORDER = RecorderView(
+    state="recording", session="s1", session_dir="/srv/bay2/s1", current_file="/srv/a.mcap",
+    current_file_bytes=1234, bytes_written=99_999, files=("/srv/0.mcap",),
+)  # fmt: skip
+
+
+def report(streams: Any = None, recorder: Any = None, **more: Any) -> bytes:
+    return json.dumps(
+        {
+            "partition": "bay2",
+            "time_ns": 1,
+            "streams": [to_jsonable(STREAM)] if streams is None else streams,
+            "recorder": to_jsonable(RECORDER) if recorder is None else recorder,
+            **more,
+        }
+    ).encode()
+
+
+def test_a_view_comes_back_as_it_was_sent() -> None:
+    assert from_jsonable(StreamView, to_jsonable(STREAM)) == STREAM
+    assert from_jsonable(RecorderView, to_jsonable(RECORDER)) == RECORDER
+    nan = from_jsonable(StreamView, {**to_jsonable(STREAM), "scan_rate": None})
+    assert math.isnan(nan.scan_rate)  # NaN travels as null
+
+
+@pytest.mark.parametrize(
+    ("change", "why"),
+    [
+        ({"batches": "many"}, "StreamView.batches: str is not an integer"),
+        ({"batches": 1.5}, "StreamView.batches: float is not an integer"),
+        ({"batches": True}, "StreamView.batches: bool is not an integer"),
+        ({"batches": 10**30}, "StreamView.batches: int is not an integer within 64 bits"),
+        ({"rate_hz": "fast"}, "StreamView.rate_hz: str is not a number"),
+        ({"rate_hz": 1e300}, "StreamView.rate_hz: float is not a number within 64 bits"),
+        ({"recorded": "yes"}, "StreamView.recorded: str is not true or false"),
+        ({"node": ["cell-a"]}, "StreamView.node: list is not text"),
+        ({"node": "x" * 5000}, "StreamView.node: str is not text of at most 4096 characters"),
+        ({"acked": "11"}, "StreamView.acked: str is not an integer"),
+        ({"wipe": 1}, "StreamView: unknown field(s) ['wipe']"),
+    ],
+)
+def test_every_wrong_field_is_refused_and_named(change: dict[str, Any], why: str) -> None:
+    with pytest.raises(ValueError, match="^" + re.escape(why)):
+        from_jsonable(StreamView, {**to_jsonable(STREAM), **change})
+
+
+def test_a_missing_field_or_a_wrong_list_is_refused() -> None:
+    s = to_jsonable(STREAM)
+    del s["node"]
+    with pytest.raises(ValueError, match=r"StreamView: .*node"):
+        from_jsonable(StreamView, s)
+    with pytest.raises(ValueError, match=r"RecorderView.files\[\]: int is not text"):
+        from_jsonable(RecorderView, {"files": ["a", 5]})
+    with pytest.raises(ValueError, match="RecorderView: not a JSON object"):
+        from_jsonable(RecorderView, ["recording"])
+
+
+@dataclass
+class _Payload:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass
+class _Sample:
+    payload: _Payload
+    key_expr: str = "fleetdaq/parts/hub/partition/bay2/report"
+
+
+def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> None:
+    seen: list[Event] = []
+    bus = EventBus()
+    bus.subscribe("test", seen.append)
+    bus.start()
+    model = ReadModel("parts")
+    watch = PartitionWatch(None, parse_config(SITE, "<t>"), bus, model)  # type: ignore[arg-type]
+    try:
+        watch._on_report(_Sample(_Payload(report())))
+        good = model.snapshot(time.time_ns())
+        assert [s.batches for s in good.streams] == [12]
+        assert good.partitions["bay2"]["recorder"]["bytes_written"] == 99_999
+        hostile = [
+            report(streams=[{**to_jsonable(STREAM), "batches": "many"}]),
+            report(recorder={**to_jsonable(RECORDER), "bytes_written": "lots"}),
+            report(recorder={**to_jsonable(RECORDER), "current_file_bytes": 10**400}),
+            report(streams={"cell-a": 1}),
+            report(streams=[[1, 2]]),
+            report(extra=True),
+            b"[]",
+            b"{" * 100_000,
+        ]
+        for raw in hostile:
+            watch._on_report(_Sample(_Payload(raw)))
+        view = model.snapshot(time.time_ns())
+        assert view.streams == good.streams, "the last good report still stands"
+        assert view.partitions["bay2"]["recorder"] == good.partitions["bay2"]["recorder"]
+        text = render_metrics(view)[0].decode()
+        assert any(
+            f.name == "fleetdaq_stream_batches" for f in text_string_to_metric_families(text)
+        )
+        # Another partition's node in bay2's report: not bay2's to speak for.
+        other = {**to_jsonable(STREAM), "node": "wec-a"}
+        watch._on_report(_Sample(_Payload(report(streams=[other]))))
+        assert model.snapshot(time.time_ns()).streams == ()
+    finally:
+        bus.stop()
+    assert watch.malformed == len(hostile)
+    told = [e for e in seen if e.tag == "malformed"]
+    assert len(told) == 1, "the first, then every 1000th"
+    assert "StreamView.batches: str is not an integer" in told[0].message
