@@ -96,6 +96,7 @@ class ViewCollector:
         yield from _nodes(self.view)
         yield from _alarms(self.view)
         yield from _recorder(self.view)
+        yield from _partitions(self.view, self.now)
         yield from _hub(self.view, self.now)
 
 
@@ -309,6 +310,42 @@ def _recorder(view: HubView) -> Iterator[Metric]:
         yield CounterMetricFamily(
             "fleetdaq_snapshots_written", "Snapshots written.", value=snap["written"]
         )
+
+
+def _partitions(view: HubView, now: float) -> Iterator[Metric]:
+    """A partitioned site's other hubs, as the main hub sees them (their liveliness and their
+    last report, checked in `hub.partition.PartitionWatch`)."""
+    if not view.partitions:
+        return
+    labels = ["partition"]
+    up = GaugeMetricFamily(
+        "fleetdaq_partition_up", "1 while the partition hub is there.", labels=labels
+    )
+    age = GaugeMetricFamily(
+        "fleetdaq_partition_report_age_seconds", "Since its last report.", labels=labels
+    )
+    state = GaugeMetricFamily(
+        "fleetdaq_partition_recorder_state",
+        "1 for its recorder's state.",
+        labels=[*labels, "state"],
+    )
+    written = CounterMetricFamily(
+        "fleetdaq_partition_recorder_written_bytes", "Bytes of MCAP it wrote.", labels=labels
+    )
+    errors = CounterMetricFamily(
+        "fleetdaq_partition_recorder_write_errors", "Writes its disk refused.", labels=labels
+    )
+    for name, p in sorted(view.partitions.items()):
+        up.add_metric([name], float(bool(p.get("alive"))))
+        if p.get("report_received_ns"):
+            age.add_metric([name], max(0.0, now - p["report_received_ns"] / 1e9))
+        r = p.get("recorder") or {}
+        if r:
+            for s in RECORDER_STATES:
+                state.add_metric([name, s], float(r.get("state") == s))
+            written.add_metric([name], r.get("bytes_written", 0))
+            errors.add_metric([name], r.get("write_errors", 0))
+    yield from (up, age, state, written, errors)
 
 
 def _hub(view: HubView, now: float) -> Iterator[Metric]:

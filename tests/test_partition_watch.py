@@ -150,3 +150,45 @@ def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> 
     told = [e for e in seen if e.tag == "malformed"]
     assert len(told) == 1, "the first, then every 1000th"
     assert "StreamView.batches: str is not an integer" in told[0].message
+
+
+def _samples(text: bytes) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    return {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for f in text_string_to_metric_families(text.decode())
+        for s in f.samples
+    }
+
+
+def test_metrics_say_whether_each_partition_hub_is_there_and_what_its_recorder_wrote() -> None:
+    import zenoh
+
+    from hub.metrics import ViewCollector, exposition, reference_metrics
+
+    bay2 = (("partition", "bay2"),)
+    bus = EventBus()
+    bus.start()
+    model = ReadModel("parts")
+    watch = PartitionWatch(None, parse_config(SITE, "<t>"), bus, model)  # type: ignore[arg-type]
+    try:
+        watch._publish()  # as it starts: bay2 not there yet, no report
+        before = _samples(render_metrics(model.snapshot(time.time_ns()))[0])
+        assert before[("fleetdaq_partition_up", bay2)] == 0.0
+        assert ("fleetdaq_partition_report_age_seconds", bay2) not in before
+        alive = _Sample(_Payload(b""), "fleetdaq/parts/hub/partition/bay2/alive")
+        alive.kind = zenoh.SampleKind.PUT  # type: ignore[attr-defined]
+        watch._on_alive(alive)
+        watch._on_report(_Sample(_Payload(report())))
+        view = model.snapshot(time.time_ns())
+    finally:
+        bus.stop()
+    now = time.time()
+    text = exposition(ViewCollector(view, now).collect())
+    assert text == reference_metrics(view, now), "the bytes prometheus-client writes"
+    samples = _samples(text)
+    assert samples[("fleetdaq_partition_up", bay2)] == 1.0
+    assert 0 <= samples[("fleetdaq_partition_report_age_seconds", bay2)] < 60
+    assert samples[("fleetdaq_partition_recorder_state", (*bay2, ("state", "recording")))] == 1
+    assert samples[("fleetdaq_partition_recorder_state", (*bay2, ("state", "stopped")))] == 0
+    assert samples[("fleetdaq_partition_recorder_written_bytes_total", bay2)] == 99_999
+    assert samples[("fleetdaq_partition_recorder_write_errors_total", bay2)] == 0
