@@ -48,6 +48,8 @@ def router_config(
     _no_shared_memory(conf)
     if tls is not None:
         _tls(conf, tls, "listen")
+        if connect:  # to the other hubs' routers, as the hub (mutual TLS both ways)
+            _tls(conf, tls, "connect")
         # Every link TLS: a plain tcp/ listener next to the TLS one would bypass it all.
         conf.insert_json5("transport/link/protocols", json.dumps(["tls"]))
     if acl is not None:

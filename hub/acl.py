@@ -11,6 +11,8 @@ itself and is not filtered.
 |                       | takes NAME from the key as the user: the certificate says who asked); |
 |                       | the view role: status, rules, alarms, outputs and recorder requests,  |
 |                       | the hub refusing every action; control: all of them                   |
+| another hub (``hub``, | anything under the site's keys (a partitioned site only: the routers  |
+| the site's hub pair)  | of its hubs mesh, and each trusts the others as itself)               |
 | anyone else           | nothing                                                               |
 
 A node cannot publish another's data, forge its acks or its liveliness, command an output, or
@@ -23,11 +25,31 @@ from __future__ import annotations
 from typing import Any
 
 from edge.config.site import SiteConfig
-from edge.keys import SiteKeys
+from edge.keys import HUB, SiteKeys
 from edge.security import OPERATOR_CN_PREFIX
 
-OPERATOR_SERVICES = ("status", "rules", "alarms", "out", "recorder")
-"""The hub services an operator may ask (``hub/<service>/by/<name>``)."""
+OPERATOR_SERVICES = (
+    "status",
+    "rules",
+    "alarms",
+    "out",
+    "recorder",
+    "partition/*/status",
+    "partition/*/recorder",
+)
+"""The hub services an operator may ask (``hub/<service>/by/<name>``; a partition hub's on
+``hub/partition/<name>/...``)."""
+EVERY_MESSAGE = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
 
 
 def by(keys: SiteKeys, service: str, name: str) -> str:
@@ -84,6 +106,13 @@ def access_control(site: SiteConfig) -> dict[str, Any]:
         sid = f"operator:{name}"
         subjects.append({"id": sid, "cert_common_names": [OPERATOR_CN_PREFIX + name]})
         policies.append({"rules": [rid, rid + "-answered"], "subjects": [sid]})
+    if site.hub.partitions:
+        # The links between the hubs' routers: each hub is the site's, as trusted as the router
+        # itself (it relays its nodes' messages, asks and answers the others' services).
+        rules.append(_rule("hubs", ["ingress", "egress"], EVERY_MESSAGE, [keys.prefix + "/**"]))
+        # The hub pair's common name (`fleetdaq pki init`): every hub of the site serves with it.
+        subjects.append({"id": "hubs", "cert_common_names": [HUB]})
+        policies.append({"rules": ["hubs"], "subjects": ["hubs"]})
     return {
         "enabled": True,
         "default_permission": "deny",

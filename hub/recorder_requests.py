@@ -44,7 +44,14 @@ class RecorderRequests(RequestService):
         key: str | None = None,
         partitions: PartitionRecorders | None = None,
     ) -> None:
-        super().__init__(router, key or keys.hub("recorder"), workers=1, security=security)
+        # A partition hub's (`key` given): the main hub passes requests on to its key itself.
+        super().__init__(
+            router,
+            key or keys.hub("recorder"),
+            workers=1,
+            security=security,
+            hubs_only=key is not None,
+        )
         self.recorder = recorder
         self.view = view
         self.snapshot = snapshot

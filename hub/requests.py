@@ -99,11 +99,16 @@ class OperatorQueryable:
         security: SecurityConfig | None,
         name: str,
         workers: int = 2,
+        hubs_only: bool = False,
     ) -> None:
         self.router = router
         self.key = key
         self.handler = handler
         self.secure = security is not None and security.tls
+        self.hubs_only = hubs_only
+        """A partition hub's service: with security on, the key itself is answered too, with
+        the request's own user, because the router's access control admits only the site's
+        other hubs there (the main hub passing an operator's or a rule's request on)."""
         self.operators = dict(security.operators) if security is not None else {}
         self.name = name
         self.workers = workers
@@ -132,7 +137,7 @@ class OperatorQueryable:
     def caller(self, key: str) -> Caller | str | None:
         """Who asked on `key`; a string says why the request is refused."""
         if key == self.key:
-            if self.secure:
+            if self.secure and not self.hubs_only:
                 return "security is on: ask as an operator (fleetdaq with your certificate)"
             return None
         name = key.removeprefix(f"{self.key}/by/")
@@ -188,10 +193,13 @@ class RequestService:
         key: str,
         workers: int = 2,
         security: SecurityConfig | None = None,
+        hubs_only: bool = False,
     ) -> None:
         self.router = router
         self.key = key
-        self.queryable = OperatorQueryable(router, key, self.handle, security, self.name, workers)
+        self.queryable = OperatorQueryable(
+            router, key, self.handle, security, self.name, workers, hubs_only
+        )
 
     def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         raise NotImplementedError

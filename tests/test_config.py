@@ -165,7 +165,10 @@ BAD: dict[str, tuple[str, str]] = {
         "node 'cell-2' is already recorded by partition 'a'",
     ),
     "bad_partition_same_listen.yaml": ("hub.partitions.bay2.listen[0]", "is also hub.listen"),
-    "bad_partition_with_tls.yaml": ("hub.partitions", "not supported with security.tls on yet"),
+    "bad_partition_plain_with_tls.yaml": (
+        "hub.partitions.bay2.listen[0]",
+        "'tcp/10.0.0.2:7447' is not tls/HOST:PORT, and security.tls is on",
+    ),
     "bad_partition_channel_alarm.yaml": (
         "alarms.hot",
         "channel cell-1/daq/load is recorded by partition 'bay2'",

@@ -609,3 +609,128 @@ def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_sa
         )
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
+
+
+SECURE_SITE = """\
+site: sparts
+security:
+  tls: true
+  pki_dir: {pki}
+  operators: {{ann: control}}
+hub:
+  listen: [tls/127.0.0.1:{main}]
+  recorder: {{file_duration_s: 3600, flush_interval_s: 0.5}}
+  partitions:
+    bay2:
+      listen: [tls/127.0.0.1:{bay2}]
+      nodes: [cell-a]
+nodes:
+{nodes}
+"""
+
+
+def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Path):
+    """security.tls with partitions: the hubs' routers link with the site's hub pair (mutual
+    TLS) and the access control lets hubs, and only hubs, speak across the mesh. The main hub
+    sees bay2's node and stream; an operator's split reaches bay2 through the main hub, and
+    `--partition` asks bay2 directly; a node's certificate can neither ask bay2's recorder nor
+    put a report in bay2's name."""
+    import os
+
+    import zenoh
+
+    from edge.security import TlsFiles
+    from edge.zenoh_session import client_config
+    from fleetdaq.pki import init, issue_node, issue_operator
+
+    pki = tmp_path / "pki"
+    init(pki, "sparts", ["127.0.0.1"])
+    for node in ("wec-a", "cell-a"):
+        issue_node(pki, node)
+    issue_operator(pki, "ann", "control")
+    main_port, bay2_port = free_port(), free_port()
+    nodes = "".join(
+        NODE.format(name=n)
+        + f"    connect: [tls/127.0.0.1:{main_port if n == 'wec-a' else bay2_port}]\n"
+        for n in ("wec-a", "cell-a")
+    )
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(SECURE_SITE.format(pki=pki, main=main_port, bay2=bay2_port, nodes=nodes))
+    env = {
+        **os.environ,
+        "FLEETDAQ_CERT": str(pki / "operators" / "ann.crt"),
+        "FLEETDAQ_KEY": str(pki / "operators" / "ann.key"),
+    }
+
+    def ann(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "fleetdaq", *args, "--config", str(cfg)],
+            cwd=REPO, env=env, capture_output=True, text=True, timeout=200, check=False,
+        )  # fmt: skip
+
+    def status() -> dict[str, Any]:
+        """The main hub's recorder status as ann asks it ({} while no hub answers yet)."""
+        r = ann("rec", "status", "--json")
+        out: dict[str, Any] = json.loads(r.stdout) if r.returncode == 0 else {}
+        return out
+
+    procs: list[Proc] = []
+    try:
+        for name, args in (
+            ("main", ["hub", "--data", str(tmp_path / "main")]),
+            ("bay2", ["hub", "--partition", "bay2", "--data", str(tmp_path / "bay2")]),
+            ("wec-a", ["edge", "--node", "wec-a", "--spool", str(tmp_path / "spool")]),
+            ("cell-a", ["edge", "--node", "cell-a", "--spool", str(tmp_path / "spool")]),
+        ):
+            procs.append(Proc([args[0], "--config", str(cfg), *args[1:]], tmp_path / f"{name}.log"))
+        # The main hub sees bay2 across the TLS mesh: there, reporting, recording cell-a.
+        wait_until(
+            lambda: (
+                (p := (status().get("partitions") or {}).get("bay2") or {}).get("alive")
+                and (p.get("recorder") or {}).get("current_file")
+            ),
+            90,
+            "bay2 there and recording, as the main hub sees it",
+        )
+        r = ann("rec", "split")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "partition bay2: closed " in r.stdout
+        r = ann("rec", "status", "--partition", "bay2", "--json")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert len(json.loads(r.stdout)["recorder"]["files"]) == 1
+        main_log = tmp_path / "main" / "events.log"
+        wait_until(
+            lambda: (
+                "hub/bay2/recorder [split]" in main_log.read_text()
+                and "by ann@" in main_log.read_text()
+            ),
+            30,
+            "bay2's split, naming ann, in the main hub's log",
+        )
+
+        # A node's certificate on bay2's router: not a hub.
+        cell = TlsFiles(pki / "ca.crt", pki / "nodes" / "cell-a.crt", pki / "nodes" / "cell-a.key")
+        s = zenoh.open(client_config([f"tls/127.0.0.1:{bay2_port}"], tls=cell))
+        try:
+            keys = SiteKeys("sparts")
+            asked = list(
+                s.get(
+                    keys.hub("partition/bay2/recorder"),
+                    payload=b'{"action": "stop", "user": "mallory"}',
+                    timeout=5,
+                )
+            )
+            assert [x for x in asked if x.ok is not None] == [], "a node may not ask bay2"
+            s.put(keys.hub("partition/bay2/report"), b'{"streams": "forged"}')
+        finally:
+            s.close()
+        assert status()["partitions"]["bay2"]["recorder"]["state"] == "recording"
+        for p in procs:
+            assert p.terminate(30) == 0, p.output()[-3000:]
+    finally:
+        for p in procs:
+            p.kill()
+    events = main_log.read_text()
+    assert "refused a report" not in events, "the forged report never reached the main hub"
+    assert "mallory" not in events
+    assert len([d for d in (tmp_path / "bay2").iterdir() if d.name[:1].isdigit()]) == 1

@@ -37,11 +37,6 @@ class SiteConfig(Strict):
         parts = self.hub.partitions
         if not parts:
             return self
-        if self.security.tls:
-            raise ValueError(
-                "hub.partitions: not supported with security.tls on yet (the routers' access "
-                "control has no rules for the links between hubs); run one hub, or tls off"
-            )
         owner: dict[str, str] = {}
         listened = {e: "hub.listen" for e in self.hub.listen}
         for name, part in parts.items():
@@ -73,6 +68,8 @@ class SiteConfig(Strict):
         if not self.security.tls:
             return self
         links = [(f"hub.listen[{i}]", e) for i, e in enumerate(self.hub.listen)]
+        for name, part in self.hub.partitions.items():
+            links += [(f"hub.partitions.{name}.listen[{i}]", e) for i, e in enumerate(part.listen)]
         for node, cfg in self.nodes.items():
             links += [(f"nodes.{node}.connect[{i}]", e) for i, e in enumerate(cfg.connect or [])]
         for where, endpoint in links:
