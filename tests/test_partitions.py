@@ -634,7 +634,8 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
     TLS) and the access control lets hubs, and only hubs, speak across the mesh. The main hub
     sees bay2's node and stream; an operator's split reaches bay2 through the main hub, and
     `--partition` asks bay2 directly; a node's certificate can neither ask bay2's recorder nor
-    put a report in bay2's name."""
+    put a report in bay2's name. A command to bay2's node crosses the mesh, and is applied
+    (the node hears the main hub's heartbeat across it)."""
     import os
 
     import zenoh
@@ -649,10 +650,13 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         issue_node(pki, node)
     issue_operator(pki, "ann", "control")
     main_port, bay2_port = free_port(), free_port()
-    nodes = "".join(
-        NODE.format(name=n)
-        + f"    connect: [tls/127.0.0.1:{main_port if n == 'wec-a' else bay2_port}]\n"
-        for n in ("wec-a", "cell-a")
+    nodes = (
+        "".join(
+            NODE.format(name=n)
+            + f"    connect: [tls/127.0.0.1:{main_port if n == 'wec-a' else bay2_port}]\n"
+            for n in ("wec-a", "cell-a")
+        )
+        + "    outputs:\n      lamp: {driver: pcf8574, address: 0x20, pin: 1, safe: 0, sim: {}}\n"
     )
     cfg = tmp_path / "site.yaml"
     cfg.write_text(SECURE_SITE.format(pki=pki, main=main_port, bay2=bay2_port, nodes=nodes))
@@ -695,6 +699,11 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         r = ann("rec", "split")
         assert r.returncode == 0, r.stdout + r.stderr
         assert "partition bay2: closed " in r.stdout
+        # A command from the main hub to bay2's node: across the mesh, and applied only
+        # because cell-a hears the main hub's heartbeat across it too.
+        r = ann("out", "set", "cell-a/lamp", "1", "--reason", "across the mesh")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "applied" in r.stdout
         r = ann("rec", "status", "--partition", "bay2", "--json")
         assert r.returncode == 0, r.stdout + r.stderr
         assert len(json.loads(r.stdout)["recorder"]["files"]) == 1
