@@ -3,13 +3,13 @@
 Request: ``{"action": "status" | "start" | "stop" | "split" | "snapshot", "user": who,
 "host": from where, "note": text}``. Reply: ``{"ok": bool, "error": text, "result": what was
 done, "recorder": the recorder's view, "snapshots": the snapshot buffer's view, "partitions":
-each partition hub as its report says (alive, its recorder), "partition_results": each partition
-hub's answer to a start, stop or split}``. Every action is an event naming who asked (the
-recorder's and the snapshot buffer's own events).
+each partition hub as its report says (alive, its recorder), "partition_results": each
+partition hub's answer to a start, stop, split or snapshot}``. Every action is an event naming
+who asked (the recorder's and the snapshot buffer's own events).
 
-On a partitioned site the main hub passes start, stop and split on to every partition hub
-(`hub.partition_recorders`), and each partition hub answers these requests for its own recorder
-on ``hub/partition/<name>/recorder``.
+On a partitioned site the main hub passes start, stop, split and snapshot on to every partition
+hub (`hub.partition_recorders`), and each partition hub answers these requests for its own
+recorder on ``hub/partition/<name>/recorder``.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ class RecorderRequests(RequestService):
         self.view = view
         self.snapshot = snapshot
         self.partitions = partitions
-        """The main hub of a partitioned site: start, stop and split reach every partition."""
+        """The main hub of a partitioned site: start, stop, split and snapshot reach every
+        partition hub."""
 
     def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
         try:
