@@ -144,5 +144,7 @@ class PartitionRecorders:
         return {
             "ok": False,
             "result": "",
-            "error": f"no answer within {self.timeout_s:g} s (is its hub running?)",
+            # At once when no such hub is on the mesh; at the timeout when one never answers.
+            "error": f"no answer (is its hub running and linked? waited at most "
+            f"{self.timeout_s:g} s)",
         }
