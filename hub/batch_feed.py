@@ -106,6 +106,12 @@ class BatchFeed:
         self.consumers.append(consumer)
         return consumer
 
+    def attach(self, consumer: FeedConsumer) -> None:
+        """Also deliver to a consumer another feed made: the same queue and thread take both
+        feeds' batches, in the order they come (a partition's streams to the main hub's
+        alarms and rules, `hub.partition_live`)."""
+        self.consumers.append(consumer)
+
     def publish(self, b: FedBatch) -> None:
         for c in self.consumers:
             c.offer(b)

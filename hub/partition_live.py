@@ -1,13 +1,21 @@
-"""A partition's streams live on the main hub, while somebody looks at them.
+"""A partition's streams live on the main hub, while somebody looks at them, and always for
+the ones the main hub's alarms, rules and interlocks watch.
 
 A partition hub records its own nodes; their batches never cross the mesh to the main hub
 (`hub.partition`), so the main hub's dashboard would list those streams without ever being
 able to draw them (nor Foxglove show them). This service subscribes to a partition node's
 stream across the mesh only while a dashboard viewer plots it (`LivePlots.demand`) or a
 Foxglove client subscribes to it (`FoxgloveLive.on_demand`), and hands its batches to those
-two alone: never to the recorder, the acks, the alarms or the snapshot buffer, which stay the
-partition hub's. When the last viewer of the stream leaves, the subscription goes and the
-batches stay on the partition's side of the mesh again.
+two: never to the recorder, the acks or the snapshot buffer, which stay the partition hub's.
+When the last viewer of the stream leaves, the subscription goes and the batches stay on the
+partition's side of the mesh again.
+
+A partition stream whose channel a channel alarm, a rule or an interlock watches
+(`SiteConfig.watched_partition_streams`) is followed for as long as the main hub runs, and its
+batches go to the main hub's supervisor and rule engine too (`supervised`). What they see is
+what crosses the mesh live: a batch the link between the hubs loses is not replayed to the
+main hub (the partition hub records it all the same), and a replay arriving later is marked
+late, which alarms and rules skip, as they do the main hub's own replays.
 
 Everything that arrives is checked in full like the recorder's input (`BatchDecoder`): a
 payload that is not a well-formed batch of that stream, or that names another stream than its
@@ -57,6 +65,10 @@ class PartitionLive:
         self.bus = bus
         self.keys = SiteKeys(site.site)
         self.feed = BatchFeed()
+        """Batches of the streams a viewer shows (the dashboard, Foxglove)."""
+        self.supervised = BatchFeed()
+        """Batches of the streams the alarms, rules and interlocks watch."""
+        self.watched = site.watched_partition_streams()
         self._remotes: dict[str, _Remote] = {}
         for part in site.hub.partitions:
             for node in site.nodes_of(part):
@@ -66,7 +78,8 @@ class PartitionLive:
         self._running = False
         self.batches = 0
         self.malformed = 0
-        self._wants: dict[str, frozenset[str]] = {}
+        self._wants: dict[str, frozenset[str]] = {"supervision": self.watched}
+        self._viewed: frozenset[str] = frozenset()
         self._withdraw: list[Callable[[str, str], None]] = []
 
     def serve_plots(self, live_plots: LivePlots) -> None:
@@ -104,6 +117,8 @@ class PartitionLive:
 
     def _apply(self) -> None:
         wanted = frozenset().union(*self._wants.values())
+        was_viewed = self._viewed
+        self._viewed = frozenset().union(*(v for k, v in self._wants.items() if k != "supervision"))
         for key, r in self._remotes.items():
             if key in wanted and r.sub is None:
                 r.last_sequence = None
@@ -120,6 +135,9 @@ class PartitionLive:
                 for withdraw in self._withdraw:
                     withdraw(r.node, r.stream)
                 log.info("live view of %s: nobody looks at it, no longer followed", key)
+            elif key in was_viewed - self._viewed:  # still followed for the alarms only
+                for withdraw in self._withdraw:
+                    withdraw(r.node, r.stream)
 
     @staticmethod
     def _drop(r: _Remote) -> None:
@@ -158,6 +176,11 @@ class PartitionLive:
                 if not late:
                     r.last_sequence = h.sequence
             self.batches += 1
-            self.feed.publish(FedBatch(r.node, r.stream, h, payload, recv_ns, late))
+            b = FedBatch(r.node, r.stream, h, payload, recv_ns, late)
+            key = f"{r.node}/{r.stream}"
+            if key in self._viewed:
+                self.feed.publish(b)
+            if key in self.watched:
+                self.supervised.publish(b)
 
         return on_data

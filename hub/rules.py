@@ -243,6 +243,11 @@ class RuleEngine:
         out += [i.when for i in self.interlocks]
         return out
 
+    def also_from(self, feed: BatchFeed) -> None:
+        """Also evaluate the batches of `feed` (a partition's watched streams, which the main
+        hub's recorder never takes: `hub.partition_live`), on the same thread."""
+        feed.attach(self._consumer)
+
     # --- lifecycle ------------------------------------------------------------------------------
 
     def start(self) -> None:

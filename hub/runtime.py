@@ -188,10 +188,12 @@ class HubRuntime:
             if site.hub.partitions and self.snapshots is not None
             else None
         )
-        # A partition's streams: fetched across the mesh only while somebody looks at them.
+        # A partition's streams: fetched across the mesh only while somebody looks at them,
+        # and always those whose channels the alarms, rules and interlocks here watch.
+        watched = site.watched_partition_streams()
         self.partition_live = (
             PartitionLive(self.router, site, self.bus)
-            if site.hub.partitions and (self.live_plots is not None or self.foxglove)
+            if site.hub.partitions and (self.live_plots is not None or self.foxglove or watched)
             else None
         )
         if self.partition_live is not None:
@@ -199,6 +201,9 @@ class HubRuntime:
                 self.partition_live.serve_plots(self.live_plots)
             for fox in self.foxglove:
                 self.partition_live.serve_foxglove(fox)
+            if watched:
+                self.supervisor.also_from(self.partition_live.supervised)
+                self.rules.also_from(self.partition_live.supervised)
         self.services = ServiceStack(
             [
                 self.router,

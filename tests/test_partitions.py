@@ -743,3 +743,33 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
     assert "refused a report" not in events, "the forged report never reached the main hub"
     assert "mallory" not in events
     assert len([d for d in (tmp_path / "bay2").iterdir() if d.name[:1].isdigit()]) == 1
+
+
+def test_alarms_and_rules_on_a_partitions_channel_run_on_the_main_hub(tmp_path: Path):
+    """A channel alarm and a rule on bay2's node: the main hub follows that stream across the
+    mesh for as long as it runs (nobody plotting it) and evaluates them there; the main hub
+    still records only its own slice."""
+    with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
+        rig.cfg.write_text(
+            rig.cfg.read_text()
+            + "alarms:\n  cell_wave: {channel: cell-a/wave/c0, above: -100, severity: minor}\n"
+            "rules:\n  cell_seen:\n    when: {channel: cell-a/wave/c1, below: 100}\n"
+            "    do: [{event: cell-a is watched from the main hub}]\n"
+        )
+        main = rig.main_hub()
+        bay2 = rig.bay2_hub()
+        edges = [rig.edge("cell-a"), rig.edge("wec-a")]
+        main_log = tmp_path / "main" / "events.log"
+        wait_until(
+            lambda: (
+                "cell_wave raised" in main_log.read_text()
+                and "cell-a is watched from the main hub" in main_log.read_text()
+            ),
+            60,
+            "the alarm and the rule on cell-a's channels, on the main hub",
+        )
+        assert "following it across the mesh" in main.output()
+        for proc in (*edges, bay2, main):
+            assert proc.terminate(30) == 0, proc.output()[-3000:]
+    recorded = _recorded(tmp_path / "main")
+    assert set(recorded) == {"/wec-a/wave"}, "the main hub records its slice only"

@@ -118,26 +118,20 @@ class SiteConfig(Strict):
                     raise ValueError(f"{where}: node {node!r} has no output {output!r}")
         return self
 
-    @model_validator(mode="after")
-    def _main_hub_sees_what_it_evaluates(self) -> SiteConfig:
-        # Channel alarms, rules and interlocks run on the main hub, over the batches it
-        # receives; a partition's batches stay on its router (only what is small crosses the
-        # mesh), so a channel of a partition's node cannot be watched there.
+    def watched_partition_streams(self) -> frozenset[str]:
+        """The partitions' streams (``node/stream``) whose channels a channel alarm, a rule or
+        an interlock watches: they run on the main hub, which follows those streams across
+        the mesh for as long as it runs (`hub.partition_live`)."""
         if not self.hub.partitions:
-            return self
-        refs = [(f"alarms.{n}", getattr(spec, "channel", None)) for n, spec in self.alarms.items()]
-        for where, trees, _, _ in _control_parts(self):
-            refs += [(where, ch) for tree in trees for ch in referenced(tree)[0]]
-        for where, channel in refs:
-            part = self.partition_of(channel.split("/")[0]) if channel else None
-            if part is not None:
-                raise ValueError(
-                    f"{where}: channel {channel} is recorded by partition {part!r}; channel "
-                    "alarms, rules and interlocks run on the main hub, which does not receive "
-                    "a partition's batches (watch its stream or node health, or record the "
-                    "node on the main hub)"
-                )
-        return self
+            return frozenset()
+        channels = [getattr(spec, "channel", None) for spec in self.alarms.values()]
+        for _, trees, _, _ in _control_parts(self):
+            channels += [ch for tree in trees for ch in referenced(tree)[0]]
+        return frozenset(
+            "/".join(ch.split("/")[:2])
+            for ch in channels
+            if ch and self.partition_of(ch.split("/")[0]) is not None
+        )
 
     def endpoints_for(self, node: str) -> list[str]:
         """The router a node connects to: its own `connect`, else its hub's `listen`."""

@@ -130,6 +130,11 @@ class Supervisor:
         self._journal_errors_told = 0
         self._journal_told_at = 0.0
 
+    def also_from(self, feed: BatchFeed) -> None:
+        """Also evaluate the batches of `feed` (a partition's watched streams, which the main
+        hub's recorder never takes: `hub.partition_live`), on the same thread."""
+        feed.attach(self._consumer)
+
     # --- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> None:
