@@ -229,7 +229,12 @@ class PartitionRuntime:
         )
         # The minute before an event, of this hub's slice: triggered with the main hub's.
         self.snapshots = SnapshotBuffer.of_recorder(
-            site, self.data_dir, self.bus, self.model, self.recorder
+            site,
+            self.data_dir,
+            self.bus,
+            self.model,
+            self.recorder,
+            site.hub.partitions[partition].snapshot,
         )
         self.snapshot_requests = (
             PartitionSnapshots(self.router, self.keys, self.snapshots, self.bus)

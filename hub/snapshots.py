@@ -31,6 +31,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from edge.config.hub import SnapshotConfig
 from edge.config.site import SiteConfig, effective_yaml
 from edge.messages import Event
 from edge.threads import name_os_thread
@@ -67,8 +68,10 @@ class SnapshotBuffer:
         model: ReadModel,
         feed: BatchFeed,
         recording: Callable[[], bool] = lambda: False,
+        cfg: SnapshotConfig | None = None,
     ) -> None:
-        self.cfg = site.hub.snapshot
+        self.cfg = cfg or site.hub.snapshot
+        """`hub.snapshot`, or a partition hub's own (`hub.partitions.<name>.snapshot`)."""
         self.recording = recording
         """Whether the recorder is writing: then an alarm's seconds are in the recording and
         it takes no snapshot (a request always does)."""
@@ -101,13 +104,20 @@ class SnapshotBuffer:
 
     @classmethod
     def of_recorder(
-        cls, site: SiteConfig, data_dir: Path, bus: EventBus, model: ReadModel, recorder: Recorder
+        cls,
+        site: SiteConfig,
+        data_dir: Path,
+        bus: EventBus,
+        model: ReadModel,
+        recorder: Recorder,
+        cfg: SnapshotConfig | None = None,
     ) -> SnapshotBuffer | None:
         """The buffer of what `recorder` takes (its batch feed and its tap), or None when the
-        site keeps none (`hub.snapshot.enabled`)."""
-        if not site.hub.snapshot.enabled:
+        hub keeps none (`enabled` of `cfg`, default `hub.snapshot`)."""
+        cfg = cfg or site.hub.snapshot
+        if not cfg.enabled:
             return None
-        buffer = cls(site, data_dir, bus, model, recorder.feed, lambda: recorder.recording)
+        buffer = cls(site, data_dir, bus, model, recorder.feed, lambda: recorder.recording, cfg)
         recorder.tap = buffer.offer
         return buffer
 

@@ -411,6 +411,9 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
     from fleetdaq.read import read_stream
 
     with running_rig(tmp_path, ("wec-a", "cell-a")) as rig:
+        # bay2's machine keeps a smaller buffer than the main hub's (its own bounds).
+        own = '      nodes: ["cell-*"]\n      snapshot: {seconds: 20, max_bytes: 50000000}\n'
+        rig.cfg.write_text(rig.cfg.read_text().replace('      nodes: ["cell-*"]\n', own))
         main = rig.main_hub()
         bay2 = rig.bay2_hub()
         edges = [rig.edge("wec-a"), rig.edge("cell-a")]
@@ -431,9 +434,11 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
         assert r.returncode == 0, r.stdout + r.stderr
         bay2_view = (rig.bay2_status() or {}).get("snapshots") or {}
         assert bay2_view["written"] == 1  # written before the main hub replied
+        assert (bay2_view["seconds"], bay2_view["max_bytes"]) == (20, 50_000_000)
         assert f"partition bay2: {bay2_view['last']}" in r.stdout, "the reply names its file"
         main_view = (rig.client.status() or {})["snapshots"]
         assert main_view["written"] == 1
+        assert main_view["seconds"] == 60, "the site's hub.snapshot"
         ours = read_stream(Path(bay2_view["last"]), "cell-a/wave")
         assert ours.data.shape[0] >= 2000, "bay2's seconds of its own slice"
         assert Path(bay2_view["last"]).is_relative_to(tmp_path / "bay2")

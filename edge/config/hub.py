@@ -72,6 +72,9 @@ class PartitionConfig(Strict):
     data_dir: str | None = None
     """Recording root of this hub (default: ``<the main hub's data_dir>/<partition name>``, so
     two hubs on one machine never share a session folder; `fleetdaq hub --data` overrides)."""
+    snapshot: SnapshotConfig | None = None
+    """This hub's snapshot buffer, when its machine needs other bounds than the main hub's
+    (default: ``hub.snapshot``). Off here, a snapshot asked of the site says so for this hub."""
 
 
 class HubConfig(Strict):
