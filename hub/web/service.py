@@ -113,13 +113,17 @@ class WebService:
         self._running = True
         log.info("dashboard on %s (users file %s)", self.url, self.users.path)
 
-    def _why(self, err: BaseException) -> str:
-        where = f"dashboard: cannot listen on {self.cfg.listen}"
+    def _why(
+        self, err: BaseException, listen: str | None = None, key: str = "hub.dashboard.listen"
+    ) -> str:
+        if isinstance(err, DashboardError):  # said already (the redirect's port)
+            return str(err)
+        where = f"dashboard: cannot listen on {listen or self.cfg.listen}"
         code = err.errno if isinstance(err, OSError) else None
         if code == errno.EADDRINUSE:
             return (
                 f"{where}: the address is in use (another hub or program); set "
-                "hub.dashboard.listen to a free port, or hub.dashboard.enabled: false"
+                f"{key} to a free port, or hub.dashboard.enabled: false"
             )
         if code == errno.EADDRNOTAVAIL:
             return f"{where}: that address is not one of this machine's"
@@ -208,6 +212,9 @@ class WebService:
         host, port = split_listen(listen)
         try:
             await web.TCPSite(runner, host, port, backlog=16).start()
+        except OSError as err:
+            await runner.cleanup()
+            raise DashboardError(self._why(err, listen, "hub.dashboard.http_redirect")) from err
         except BaseException:
             await runner.cleanup()
             raise

@@ -9,6 +9,7 @@ import logging
 import math
 import socket
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -279,6 +280,32 @@ def test_a_port_held_by_another_program_is_refused_too(make_web: MakeWeb):
         cfg = web.service.cfg.model_copy(update={"listen": f"127.0.0.1:{port}"})
         with pytest.raises(DashboardError, match="the address is in use"):
             WebService(_site_with(web, cfg), web.service.parts).start()
+
+
+def test_a_redirect_port_held_by_another_program_is_said_by_its_own_setting(
+    make_web: MakeWeb, tmp_path: Path
+) -> None:
+    from fleetdaq import pki
+
+    pki.init(tmp_path / "pki", "webtest", ["127.0.0.1"])
+    tls = {
+        "cert_file": str(tmp_path / "pki" / "hub.crt"),
+        "key_file": str(tmp_path / "pki" / "hub.key"),
+    }
+    web = make_web()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        cfg = web.service.cfg.model_validate(
+            {**web.service.cfg.model_dump(), "tls": tls, "http_redirect": f"127.0.0.1:{port}"}
+        )
+        with pytest.raises(DashboardError) as err:
+            WebService(_site_with(web, cfg), web.service.parts).start()
+    assert str(err.value) == (
+        f"dashboard: cannot listen on 127.0.0.1:{port}: the address is in use (another hub or "
+        "program); set hub.dashboard.http_redirect to a free port, or hub.dashboard.enabled: false"
+    )
 
 
 # --- the WebSocket ----------------------------------------------------------------------------
