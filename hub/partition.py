@@ -55,6 +55,7 @@ from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
 from hub.partition_recorders import recorder_key
 from hub.partition_snapshots import PartitionSnapshots
 from hub.read_model import (
+    DiskView,
     HubView,
     ReadModel,
     RecorderView,
@@ -143,12 +144,16 @@ class PartitionReport:
 
     def report(self) -> bytes:
         view = self.model.snapshot(time.time_ns())
+        disk = view.hub_health.host.disk("data") if view.hub_health is not None else None
         return json.dumps(
             {
                 "partition": self.partition,
                 "time_ns": view.time_ns,
                 "streams": to_jsonable(view.streams),
                 "recorder": to_jsonable(view.recorder),
+                "data_disk": to_jsonable(
+                    DiskView(disk.free_bytes, disk.total_bytes) if disk else DiskView()
+                ),
             },
             separators=(",", ":"),
         ).encode()
@@ -382,7 +387,8 @@ class PartitionWatch:
         self._lock = threading.Lock()
         self._streams: dict[str, tuple[StreamView, ...]] = {}
         self._state: dict[str, dict[str, Any]] = {
-            name: {"alive": False, "report_received_ns": 0, "recorder": {}} for name in self.owned
+            name: {"alive": False, "report_received_ns": 0, "recorder": {}, "data_disk": {}}
+            for name in self.owned
         }
         self.malformed = 0
         self._subs: list[Any] = []
@@ -449,7 +455,7 @@ class PartitionWatch:
         payload = sample.payload.to_bytes()
         try:
             report = json_object(payload, MAX_PAYLOAD_BYTES)
-            unknown = set(report) - {"partition", "time_ns", "streams", "recorder"}
+            unknown = set(report) - {"partition", "time_ns", "streams", "recorder", "data_disk"}
             if unknown:
                 raise ValueError(f"unknown field(s) {sorted(unknown)[:5]}")
             if not isinstance(report.get("streams"), list):
@@ -460,6 +466,7 @@ class PartitionWatch:
                 dataclasses.replace(s, hub=name) for s in views if s.node in self.owned[name]
             )
             recorder = to_jsonable(from_jsonable(RecorderView, report.get("recorder")))
+            disk = to_jsonable(from_jsonable(DiskView, report.get("data_disk", {})))
         except ValueError as err:
             self.malformed += 1
             if worth_telling(self.malformed):
@@ -476,6 +483,7 @@ class PartitionWatch:
             self._streams[name] = streams
             self._state[name]["report_received_ns"] = time.time_ns()
             self._state[name]["recorder"] = recorder
+            self._state[name]["data_disk"] = disk
         self._publish()
 
     def _on_event(self, sample: Any) -> None:

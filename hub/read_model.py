@@ -78,6 +78,14 @@ class RecorderView:
 
 
 @dataclass(frozen=True, slots=True)
+class DiskView:
+    """A recording disk's space (a partition hub's, in its report)."""
+
+    free_bytes: int = 0
+    total_bytes: int = 0
+
+
+@dataclass(frozen=True, slots=True)
 class AlarmView:
     """One alarm in the read model (what `fleetdaq alarms` and the dashboard show)."""
 

@@ -335,6 +335,46 @@ def test_the_alarm_names_the_site_file_knows_are_the_ones_the_hub_builds():
     assert alarm_names(site) == {d.name for d in build_definitions(site)}
     demo = parse_config(Path("config/demo.yaml").read_text(), "demo.yaml")
     assert alarm_names(demo) == {d.name for d in build_definitions(demo)}
+    parts = parse_config(PARTITIONED, "p.yaml")
+    assert alarm_names(parts) == {d.name for d in build_definitions(parts)}
+
+
+PARTITIONED = """\
+site: p
+hub:
+  universal_alarms: {disk_nearly_full: {severity: major, threshold: 10}}
+  partitions:
+    bay2: {listen: [tcp/10.0.0.2:7447], nodes: [cell]}
+nodes:
+  wec: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+  cell: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+"""
+
+
+def test_each_partition_hub_is_watched_like_the_main_hub_down_disk_and_recorder():
+    """`node_down/hub/P`, `disk_nearly_full/hub/P`, `recorder/hub/P`, from what the main hub
+    knows of the partition (its liveliness and its last report)."""
+    from hub.alarms.supervisor import _partition_check
+
+    defs = {d.name: d for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
+    down, disk, rec = (defs[f"{k}/hub/bay2"] for k in ("node_down", "disk_nearly_full", "recorder"))
+    assert (down.severity, down.threshold) == ("critical", 10.0)
+    assert (disk.severity, disk.threshold) == ("major", 10.0)
+    healthy = {
+        "alive": True,
+        "recorder": {"state": "recording", "write_errors": 0},
+        "data_disk": {"free_bytes": 50, "total_bytes": 100},
+    }
+    assert [_partition_check(d, healthy)[0] for d in (down, disk, rec)] == [False, False, False]
+    assert _partition_check(down, {**healthy, "alive": False})[0] is True
+    assert _partition_check(down, {})[0] is True  # never seen: not there
+    full = {**healthy, "data_disk": {"free_bytes": 4, "total_bytes": 100}}
+    assert _partition_check(disk, full) == (True, 4.0)
+    assert _partition_check(disk, {})[0] is False  # no report yet: nothing to judge
+    failed = {**healthy, "recorder": {"state": "disk_error", "write_errors": 3}}
+    assert _partition_check(rec, failed) == (True, 3.0)
+    stopped = {**healthy, "recorder": {"state": "stopped", "write_errors": 0}}
+    assert _partition_check(rec, stopped)[0] is False  # stopped on purpose: not a failure
 
 
 def test_batch_extremes_read_a_payloads_own_bytes():

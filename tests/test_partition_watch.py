@@ -128,6 +128,7 @@ def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> 
             report(streams={"cell-a": 1}),
             report(streams=[[1, 2]]),
             report(extra=True),
+            report(data_disk={"free_bytes": "x", "total_bytes": 1}),
             b"[]",
             b"{" * 100_000,
         ]

@@ -177,6 +177,7 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
     for node in MAIN_SLICE:
         assert stream_view(status, node, "wave")["hub"] == ""  # type: ignore[index]
     assert status["partitions"]["bay2"]["alive"] is True
+    assert status["partitions"]["bay2"]["data_disk"]["total_bytes"] > 0  # for its disk alarm
     own = rig.bay2_status()
     assert own is not None
     assert {s["node"] for s in own["streams"]} == set(BAY2_SLICE)
@@ -210,6 +211,12 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         lambda s: all(_acked(s, n) >= main_before[n] + 20 for n in MAIN_SLICE),
         30,
         "the main slice to go on being acked while bay2 is down",
+    )
+    main_log = rig.tmp / "main" / "events.log"
+    wait_until(
+        lambda: "node_down/hub/bay2 raised" in main_log.read_text(),
+        30,
+        "the main hub's alarm for the partition hub gone (10 s by default)",
     )
 
     # It returns: its edges replay into it, and catch up with live.

@@ -263,6 +263,11 @@ def alarm_names(site: Any) -> set[str]:
         names.add("recorder/hub")
     if u.notifications_failing and site.hub.notify.groups:
         names.add("notifications_failing/hub")
+    for p in site.hub.partitions:  # each partition hub, watched from the main hub
+        for kind, on in (("node_down", u.node_down), ("disk_nearly_full", u.disk_nearly_full),
+                         ("recorder", u.recorder)):  # fmt: skip
+            if on:
+                names.add(f"{kind}/hub/{p}")
     for name, spec in site.alarms.items():
         if isinstance(spec, ChannelAlarm):
             names |= {name + suffix for suffix, *_ in spec.limits()}

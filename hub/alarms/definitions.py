@@ -26,7 +26,8 @@ class AlarmDef:
     """What is checked: "above", "below", "fault" (channel); "stale", "rate", "gaps",
     "invalid", "backlog" (stream); "down", "cpu", "memory", "disk", "temperature", "spool",
     "unacked_age", "clock_unlocked", "offset" (node); "hub_disk", "write_errors",
-    "notifications_failing", "recorder_stopped", "recorder" (hub)."""
+    "notifications_failing", "recorder_stopped", "recorder", "partition_down",
+    "partition_disk", "partition_recorder" (hub)."""
     condition: str
     """For people: "above 400 degC", "no batch for 5 s", ..."""
     severity: Severity
@@ -256,6 +257,7 @@ def _universal(site: SiteConfig) -> list[AlarmDef]:
                 r.severity, node="hub", latch=r.latch, universal=True,
             )
         )  # fmt: skip
+    out += _partition_hubs(site, rule(u.node_down), rule(u.disk_nearly_full), rule(u.recorder))
     if (r := rule(u.notifications_failing)) is not None and site.hub.notify.groups:
         after = r.after_s if r.after_s is not None else 600.0
         out.append(
@@ -265,6 +267,47 @@ def _universal(site: SiteConfig) -> list[AlarmDef]:
                 threshold=after, latch=r.latch, universal=True,
             )
         )  # fmt: skip
+    return out
+
+
+def _partition_hubs(
+    site: SiteConfig,
+    down: UniversalRule | None,
+    disk: UniversalRule | None,
+    recorder: UniversalRule | None,
+) -> list[AlarmDef]:
+    """Each partition hub of a partitioned site, watched from the main hub as it watches itself
+    and its nodes (from the partition's liveliness token and report): ``node_down/hub/P``,
+    ``disk_nearly_full/hub/P``, ``recorder/hub/P``."""
+    out: list[AlarmDef] = []
+    for p in site.hub.partitions:
+        node = f"hub/{p}"
+        if down is not None:
+            after = down.after_s if down.after_s is not None else 10.0
+            out.append(
+                AlarmDef(
+                    f"node_down/{node}", "hub", "partition_down",
+                    f"partition hub {p}: not there for {after:g} s", down.severity, node=node,
+                    threshold=after, latch=down.latch, universal=True,
+                )
+            )  # fmt: skip
+        if disk is not None:
+            pct = disk.threshold if disk.threshold is not None else 5.0
+            out.append(
+                AlarmDef(
+                    f"disk_nearly_full/{node}", "hub", "partition_disk",
+                    f"partition hub {p}: recording disk free below {pct:g} %", disk.severity,
+                    node=node, unit="%", threshold=pct, latch=disk.latch, universal=True,
+                )
+            )  # fmt: skip
+        if recorder is not None:
+            out.append(
+                AlarmDef(
+                    f"recorder/{node}", "hub", "partition_recorder",
+                    f"partition hub {p}: the recorder cannot write", recorder.severity,
+                    node=node, latch=recorder.latch, universal=True,
+                )
+            )  # fmt: skip
     return out
 
 

@@ -76,7 +76,7 @@ class Alarm:
         )  # fmt: skip
 
 
-_THRESHOLD_IS_DELAY = {"down", "clock_unlocked"}
+_THRESHOLD_IS_DELAY = {"down", "clock_unlocked", "partition_down"}
 """Checks whose threshold is how long the raw condition must hold."""
 
 
@@ -370,6 +370,8 @@ class Supervisor:
                     return False, math.nan
                 return abs(status.offset_ns) > d.threshold, float(status.offset_ns)
             return False, math.nan
+        if d.check.startswith("partition_"):  # a partition hub, as the main hub sees it
+            return _partition_check(d, view.partitions.get(d.node.removeprefix("hub/")) or {})
         # the hub
         rec = view.recorder
         if d.check == "hub_disk":
@@ -497,3 +499,18 @@ class Supervisor:
                 out.append((name, True, s.state.value))
         self._publish()
         return out
+
+
+def _partition_check(d: AlarmDef, p: dict[str, Any]) -> tuple[bool, float]:
+    """A partition hub's alarm from its state in the read model (`PartitionWatch`: its
+    liveliness, and its last report, checked field by field)."""
+    if d.check == "partition_down":
+        return not p.get("alive"), math.nan
+    if d.check == "partition_recorder":
+        rec = p.get("recorder") or {}
+        return rec.get("state") in ("disk_error", "failed"), float(rec.get("write_errors", 0))
+    disk = p.get("data_disk") or {}
+    if not disk.get("total_bytes"):
+        return False, math.nan
+    free = 100.0 * disk["free_bytes"] / disk["total_bytes"]
+    return free < d.threshold, free
