@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import subprocess
 import sys
 import time
@@ -308,7 +309,6 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
     then they come, are shown, and are not recorded by the main hub; when the viewer leaves,
     they stop coming."""
     import asyncio
-    import re
     import urllib.request
 
     import aiohttp
@@ -524,11 +524,15 @@ def test_start_stop_and_split_on_the_main_hub_reach_every_partition_hub(tmp_path
         assert "partition bay2: stopped; session " in r.stdout
         assert recorder(rig)["recorder"]["state"] == "stopped"
         assert recorder(rig, "bay2")["recorder"]["state"] == "stopped"
-        wait_until(
-            lambda: "bay2: stopped " in rec(rig, "status").stdout,
-            30,
-            "bay2's stopped recorder in the main hub's status (from its report)",
+
+        def stopped_shown() -> str | None:
+            out = rec(rig, "status").stdout
+            return out if "bay2: stopped " in out else None
+
+        shown = wait_until(
+            stopped_shown, 30, "bay2's stopped recorder in the main hub's status (its report)"
         )
+        assert re.search(r"partition    bay2: stopped .*; disk \d+ % free", shown), shown
         main_log = tmp_path / "main" / "events.log"
         wait_until(
             lambda: any(

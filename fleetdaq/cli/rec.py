@@ -59,6 +59,9 @@ def _show(reply: dict[str, Any]) -> None:
                 f"{Path(pr.get('current_file') or '-').name} "
                 f"{_size(int(pr.get('current_file_bytes') or 0))}"
             )
+            disk = p.get("data_disk") or {}
+            if disk.get("total_bytes"):
+                line += f"; disk {100 * disk['free_bytes'] / disk['total_bytes']:.0f} % free"
         click.echo(f"partition    {name}: {line}")
 
 

@@ -400,6 +400,7 @@ def test_a_stop_from_the_page_stops_every_hub_of_a_partitioned_site(tmp_path: Pa
     assert result["ok"], result.get("error")
     assert result["after"]["State"] == "stopped"
     assert result["after"]["Partition bay2"].startswith("stopped · ")
+    assert re.search(r" · disk [\d.]+ % free$", result["after"]["Partition bay2"])
     assert result["after_class"] == "bad"
     assert "On every hub of the site." in result["dialog"]
     assert "partition bay2: stopped; session " in result["toast"]

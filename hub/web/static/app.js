@@ -474,7 +474,9 @@
         continue;
       }
       const file = pr.current_file ? ` · ${pr.current_file.split("/").pop()} ${bytes(pr.current_file_bytes || 0)}` : "";
-      facts.push([k, `${pr.state} · ${pr.session || "–"}${file}`]);
+      const dk = p.data_disk || {};
+      const disk = dk.total_bytes ? ` · disk ${num(100 * dk.free_bytes / dk.total_bytes, 2)} % free` : "";
+      facts.push([k, `${pr.state} · ${pr.session || "–"}${file}${disk}`]);
       if (pr.state !== "recording") bad.add(k);
     }
     const dl = $("recorder-facts");
