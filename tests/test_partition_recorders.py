@@ -15,6 +15,7 @@ from edge.keys import SiteKeys
 from edge.messages import Event
 from hub.bus import EventBus
 from hub.partition_recorders import PartitionRecorders, parse_answer
+from tests.zenoh_shapes import Payload, Reply, Sample
 
 
 @pytest.mark.parametrize(
@@ -47,32 +48,12 @@ def test_an_answer_keeps_only_ok_result_and_error_and_an_error_is_never_ok() -> 
     assert wrong["ok"] is False
 
 
-# A Zenoh reply as zenoh-python hands it over: `.ok` a sample or None, `.err` the error.
-@dataclass
-class _Payload:
-    data: bytes
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
-@dataclass
-class _Part:
-    payload: _Payload
-
-
-@dataclass
-class _Reply:
-    ok: _Part | None
-    err: _Part | None = None
-
-
 class _Session:
-    def __init__(self, replies: dict[str, list[_Reply]]) -> None:
+    def __init__(self, replies: dict[str, list[Reply]]) -> None:
         self.replies = replies
         self.asked: list[tuple[str, bytes]] = []
 
-    def get(self, key: str, payload: bytes, timeout: float) -> list[_Reply]:
+    def get(self, key: str, payload: bytes, timeout: float) -> list[Reply]:
         self.asked.append((key, payload))
         return self.replies.get(key.split("/")[-2], [])
 
@@ -83,12 +64,12 @@ class _Router:
 
 
 def test_each_partition_is_asked_and_a_bad_or_missing_answer_is_that_partitions_failure() -> None:
-    good = _Reply(_Part(_Payload(b'{"ok": true, "result": "stopped; session s closed"}')))
+    good = Reply(Sample(Payload(b'{"ok": true, "result": "stopped; session s closed"}')))
     session = _Session(
         {
             "bay2": [good],
-            "bay3": [_Reply(_Part(_Payload(b"junk")))],
-            "bay4": [_Reply(None, _Part(_Payload(b"queryable failed")))],
+            "bay3": [Reply(Sample(Payload(b"junk")))],
+            "bay4": [Reply(None, Sample(Payload(b"queryable failed")))],
             # bay5: no queryable answered (its hub is down)
         }
     )
@@ -131,8 +112,8 @@ def test_passed_on_without_waiting_a_partition_that_did_not_do_it_is_a_warning()
     """A rule's `record:` action: the answers are collected on a thread of their own."""
     import threading
 
-    ok = _Reply(_Part(_Payload(b'{"ok": true, "result": "closed f.mcap"}')))
-    session = _Session({"bay2": [ok], "bay3": [_Reply(_Part(_Payload(b'{"ok": false}')))]})
+    ok = Reply(Sample(Payload(b'{"ok": true, "result": "closed f.mcap"}')))
+    session = _Session({"bay2": [ok], "bay3": [Reply(Sample(Payload(b'{"ok": false}')))]})
     seen: list[Event] = []
     got = threading.Event()
     bus = EventBus()

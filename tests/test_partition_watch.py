@@ -9,7 +9,6 @@ import json
 import math
 import re
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -21,6 +20,7 @@ from hub.bus import EventBus
 from hub.metrics import render_metrics
 from hub.partition import PartitionWatch
 from hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable
+from tests.zenoh_shapes import Payload, Sample
 
 SITE = """\
 site: parts
@@ -95,18 +95,7 @@ def test_a_missing_field_or_a_wrong_list_is_refused() -> None:
         from_jsonable(RecorderView, ["recording"])
 
 
-@dataclass
-class _Payload:
-    data: bytes
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
-@dataclass
-class _Sample:
-    payload: _Payload
-    key_expr: str = "fleetdaq/parts/hub/partition/bay2/report"
+REPORT_KEY = "fleetdaq/parts/hub/partition/bay2/report"
 
 
 def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> None:
@@ -117,7 +106,7 @@ def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> 
     model = ReadModel("parts")
     watch = PartitionWatch(None, parse_config(SITE, "<t>"), bus, model)  # type: ignore[arg-type]
     try:
-        watch._on_report(_Sample(_Payload(report())))
+        watch._on_report(Sample(Payload(report()), REPORT_KEY))
         good = model.snapshot(time.time_ns())
         assert [s.batches for s in good.streams] == [12]
         assert good.partitions["bay2"]["recorder"]["bytes_written"] == 99_999
@@ -133,7 +122,7 @@ def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> 
             b"{" * 100_000,
         ]
         for raw in hostile:
-            watch._on_report(_Sample(_Payload(raw)))
+            watch._on_report(Sample(Payload(raw), REPORT_KEY))
         view = model.snapshot(time.time_ns())
         assert view.streams == good.streams, "the last good report still stands"
         assert view.partitions["bay2"]["recorder"] == good.partitions["bay2"]["recorder"]
@@ -143,7 +132,7 @@ def test_a_hostile_report_is_refused_whole_and_metrics_and_status_carry_on() -> 
         )
         # Another partition's node in bay2's report: not bay2's to speak for.
         other = {**to_jsonable(STREAM), "node": "wec-a"}
-        watch._on_report(_Sample(_Payload(report(streams=[other]))))
+        watch._on_report(Sample(Payload(report(streams=[other])), REPORT_KEY))
         assert model.snapshot(time.time_ns()).streams == ()
     finally:
         bus.stop()
@@ -176,10 +165,11 @@ def test_metrics_say_whether_each_partition_hub_is_there_and_what_its_recorder_w
         before = _samples(render_metrics(model.snapshot(time.time_ns()))[0])
         assert before[("fleetdaq_partition_up", bay2)] == 0.0
         assert ("fleetdaq_partition_report_age_seconds", bay2) not in before
-        alive = _Sample(_Payload(b""), "fleetdaq/parts/hub/partition/bay2/alive")
-        alive.kind = zenoh.SampleKind.PUT  # type: ignore[attr-defined]
+        alive = Sample(
+            Payload(b""), "fleetdaq/parts/hub/partition/bay2/alive", zenoh.SampleKind.PUT
+        )
         watch._on_alive(alive)
-        watch._on_report(_Sample(_Payload(report())))
+        watch._on_report(Sample(Payload(report()), REPORT_KEY))
         view = model.snapshot(time.time_ns())
     finally:
         bus.stop()
