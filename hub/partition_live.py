@@ -50,6 +50,7 @@ class _Remote:
     def __init__(self, node: str, stream: str, sample_format: SampleFormat) -> None:
         self.node = node
         self.stream = stream
+        self.key = f"{node}/{stream}"
         self.sample_format = sample_format
         self.decoder = BatchDecoder()
         self.lock = threading.Lock()  # Zenoh may call back from more than one thread
@@ -177,10 +178,9 @@ class PartitionLive:
                     r.last_sequence = h.sequence
             self.batches += 1
             b = FedBatch(r.node, r.stream, h, payload, recv_ns, late)
-            key = f"{r.node}/{r.stream}"
-            if key in self._viewed:
+            if r.key in self._viewed:
                 self.feed.publish(b)
-            if key in self.watched:
+            if r.key in self.watched:
                 self.supervised.publish(b)
 
         return on_data
