@@ -130,7 +130,8 @@ class PartitionLive:
                 except Exception:  # the session is closing: the viewer sees no data, says so
                     log.exception("live view of %s: cannot subscribe to it", key)
                     continue
-                log.info("live view of %s: following it across the mesh", key)
+                why = "live view" if key in self._viewed else "alarms and rules"
+                log.info("%s of %s: following it across the mesh", why, key)
             elif key not in wanted and r.sub is not None:
                 self._drop(r)
                 for withdraw in self._withdraw:

@@ -784,7 +784,7 @@ def test_alarms_and_rules_on_a_partitions_channel_run_on_the_main_hub(tmp_path: 
             60,
             "the alarm and the rule on cell-a's channels, on the main hub",
         )
-        assert "following it across the mesh" in main.output()
+        assert "alarms and rules of cell-a/wave: following it across the mesh" in main.output()
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
     recorded = _recorded(tmp_path / "main")
