@@ -158,6 +158,17 @@ def _recorded(data: Path) -> dict[str, list[int]]:
     return out
 
 
+def wait_logged(log: Path, *texts: str, timeout: float = 30, what: str) -> str:
+    """Wait until one line of the events log `log` holds every one of `texts`; that line."""
+
+    def line() -> str | None:
+        lines = log.read_text().splitlines() if log.exists() else []
+        return next((x for x in lines if all(t in x for t in texts)), None)
+
+    found: str = wait_until(line, timeout, what)
+    return found
+
+
 def _contiguous(seqs: list[int]) -> bool:
     return sorted(set(seqs)) == list(range(max(seqs) + 1))
 
@@ -216,10 +227,10 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         "the main slice to go on being acked while bay2 is down",
     )
     main_log = rig.tmp / "main" / "events.log"
-    wait_until(
-        lambda: "node_down/hub/bay2 raised" in main_log.read_text(),
-        30,
-        "the main hub's alarm for the partition hub gone (10 s by default)",
+    wait_logged(
+        main_log,
+        "node_down/hub/bay2 raised",
+        what="the main hub's alarm for the partition hub gone (10 s by default)",
     )
 
     # It returns: its edges replay into it, and catch up with live.
@@ -455,10 +466,10 @@ def test_a_snapshot_on_the_main_hub_is_one_on_every_partition_hub_too(tmp_path: 
             read_stream(Path(main_view["last"]), "cell-a/wave")  # the main hub's: its slice
         assert read_stream(Path(main_view["last"]), "wec-a/wave").data.shape[0] >= 1000
         main_log = tmp_path / "main" / "events.log"
-        wait_until(
-            lambda: f"written to {bay2_view['last']} (requested by " in main_log.read_text(),
-            30,
-            "bay2's snapshot event in the main hub's log",
+        wait_logged(
+            main_log,
+            f"written to {bay2_view['last']} (requested by ",
+            what="bay2's snapshot event in the main hub's log",
         )
         assert "): before the storm" in main_log.read_text()
         events = main_log.read_text()
@@ -536,13 +547,8 @@ def test_start_stop_and_split_on_the_main_hub_reach_every_partition_hub(tmp_path
         )
         assert re.search(r"partition    bay2: stopped .*; disk \d+ % free", shown), shown
         main_log = tmp_path / "main" / "events.log"
-        wait_until(
-            lambda: any(
-                "hub/bay2" in line and "recording stopped by " in line
-                for line in main_log.read_text().splitlines()
-            ),
-            30,
-            "bay2's stop in the main hub's log",
+        wait_logged(
+            main_log, "hub/bay2", "recording stopped by ", what="bay2's stop in the main hub's log"
         )
 
         # Start on the main hub: both record again, each into a new session.
@@ -598,32 +604,25 @@ def test_a_rules_record_action_reaches_the_partition_hubs_and_one_not_done_is_sa
         )
         edges.append(rig.edge("wec-a"))  # the rule fires when wec-a is there
         main_log = tmp_path / "main" / "events.log"
-        line = wait_until(
-            lambda: next(
-                (x for x in main_log.read_text().splitlines() if "hub/bay2/recorder [split]" in x),
-                None,
-            ),
-            60,
-            "bay2's split, asked by the rule, in the main hub's log",
+        line = wait_logged(
+            main_log,
+            "hub/bay2/recorder [split]",
+            timeout=60,
+            what="bay2's split, asked by the rule, in the main hub's log",
         )
         assert "by rule:split_everywhere@hub" in line
-        wait_until(
-            lambda: (
-                "partition hub bay3: record split for rule:split_everywhere not done: no "
-                "answer" in main_log.read_text()
-            ),
-            30,
-            "bay3's missing split as a warning",
+        wait_logged(
+            main_log,
+            "partition hub bay3: record split for rule:split_everywhere not done: no answer",
+            what="bay3's missing split as a warning",
         )
         # The rule's snapshot reaches bay2 by the trigger (as an alarm's does).
-        wait_until(
-            lambda: any(
-                "hub/bay2/recorder [snapshot]" in x
-                and "(requested by rule:split_everywhere on the main hub)" in x
-                for x in main_log.read_text().splitlines()
-            ),
-            60,
-            "bay2's snapshot, triggered by the rule, in the main hub's log",
+        wait_logged(
+            main_log,
+            "hub/bay2/recorder [snapshot]",
+            "(requested by rule:split_everywhere on the main hub)",
+            timeout=60,
+            what="bay2's snapshot, triggered by the rule, in the main hub's log",
         )
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
@@ -726,13 +725,11 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         assert r.returncode == 0, r.stdout + r.stderr
         assert len(json.loads(r.stdout)["recorder"]["files"]) == 1
         main_log = tmp_path / "main" / "events.log"
-        wait_until(
-            lambda: (
-                "hub/bay2/recorder [split]" in main_log.read_text()
-                and "by ann@" in main_log.read_text()
-            ),
-            30,
-            "bay2's split, naming ann, in the main hub's log",
+        wait_logged(
+            main_log,
+            "hub/bay2/recorder [split]",
+            "by ann@",
+            what="bay2's split, naming ann, in the main hub's log",
         )
 
         # A node's certificate on bay2's router: not a hub.
@@ -778,14 +775,8 @@ def test_alarms_and_rules_on_a_partitions_channel_run_on_the_main_hub(tmp_path: 
         bay2 = rig.bay2_hub()
         edges = [rig.edge("cell-a"), rig.edge("wec-a")]
         main_log = tmp_path / "main" / "events.log"
-        wait_until(
-            lambda: (
-                "cell_wave raised" in main_log.read_text()
-                and "cell-a is watched from the main hub" in main_log.read_text()
-            ),
-            60,
-            "the alarm and the rule on cell-a's channels, on the main hub",
-        )
+        wait_logged(main_log, "cell_wave raised", timeout=60, what="the alarm on cell-a's channel")
+        wait_logged(main_log, "cell-a is watched from the main hub", what="the rule's event")
         assert "alarms and rules of cell-a/wave: following it across the mesh" in main.output()
         rig.client.wait(
             lambda s: (stream_view(s, "wec-a", "wave") or {}).get("batches", 0) >= 5,
