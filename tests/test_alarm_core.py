@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from edge.config.load import parse_config
+from edge.errors import ConfigError
 from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, StreamScreen
 from hub.alarms.definitions import build_definitions
 from hub.alarms.journal import Journal
@@ -282,6 +283,32 @@ def test_universal_alarms_exist_without_config_and_limits_expand_per_limit():
     assert {"load.hihi", "load.hi", "load.lo", "load.fault"} <= names
     severities = {d.name: d.severity for d in build_definitions(parse_config(SITE, "s.yaml"))}
     assert (severities["load.hihi"], severities["load.hi"]) == ("critical", "major")
+
+
+def test_a_universal_alarm_tuned_in_part_keeps_its_defaults_for_the_rest():
+    """What a user writes to give nodes longer on a slow link: `node_down: {after_s: 30}`."""
+    site = parse_config(
+        SITE.replace(
+            "{stream_gaps: false}",
+            "{node_down: {after_s: 30}, stream_gaps: {severity: minor}, recorder: true}",
+        ),
+        "s.yaml",
+    )
+    u = site.hub.universal_alarms
+    assert u.node_down
+    assert (u.node_down.severity, u.node_down.after_s) == ("critical", 30)
+    assert u.stream_gaps
+    assert (u.stream_gaps.severity, u.stream_gaps.after_s, u.stream_gaps.latch) == (
+        "minor", 30, True,
+    )  # fmt: skip
+    assert u.recorder
+    assert u.recorder.severity == "critical"
+    severities = {d.name: d.severity for d in build_definitions(site)}
+    assert severities["stream_gaps/wec/t8"] == "minor"
+    with pytest.raises(ConfigError, match=r"hub\.universal_alarms\.node_down.*after_s"):
+        parse_config(SITE.replace("{stream_gaps: false}", "{node_down: {after_s: -1}}"), "s")
+    with pytest.raises(ConfigError, match=r"hub\.universal_alarms\.node_down.*severity"):
+        parse_config(SITE.replace("{stream_gaps: false}", "{node_down: {severity: loud}}"), "s")
 
 
 def test_the_journal_keeps_the_last_state_of_each_alarm_and_skips_a_torn_line(tmp_path: Path):

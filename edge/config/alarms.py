@@ -220,7 +220,26 @@ class UniversalRule(Strict):
 
 
 class UniversalAlarms(Strict):
-    """Alarms every site gets (per node, per stream, on the hub), each tunable or `false`."""
+    """Alarms every site gets (per node, per stream, on the hub), each tunable or `false`.
+    A rule written in part (``node_down: {after_s: 30}``) keeps its defaults for the rest;
+    ``true`` is the default rule."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _over_defaults(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            field = cls.model_fields.get(name) if isinstance(name, str) else None
+            default = field.default if field is not None else None
+            if not isinstance(default, UniversalRule):
+                continue
+            if value is True:
+                out[name] = default
+            elif isinstance(value, dict):
+                out[name] = {**default.model_dump(), **value}
+        return out
 
     node_down: UniversalRule | Literal[False] = UniversalRule(severity="critical", after_s=10)
     """A node's liveliness token is gone for `after_s`."""
