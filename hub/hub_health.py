@@ -26,8 +26,15 @@ class HubHealth:
     name = "hub-health"
 
     def __init__(
-        self, data_dir: Path, model: ReadModel, recorder: Recorder, period_s: float = 1.0
+        self,
+        data_dir: Path,
+        model: ReadModel,
+        recorder: Recorder,
+        period_s: float = 1.0,
+        node: str = HUB,
     ) -> None:
+        """`node`: who this health is of (a partition hub's is ``hub/<name>``)."""
+        self.node = node
         self.model = model
         self.recorder = recorder
         self.period_s = period_s
@@ -41,7 +48,7 @@ class HubHealth:
         now = time.time_ns()
         return NodeHealth(
             time_ns=now,
-            node=HUB,
+            node=self.node,
             version=__version__,
             uptime_s=(now - self.started_ns) / 1e9,
             host=self.host.read(),

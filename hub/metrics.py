@@ -183,6 +183,10 @@ def _nodes(view: HubView) -> Iterator[Metric]:
     if view.hub_health is not None:
         up.add_metric(["hub"], 1.0)
         _health(gauge, "hub", view.hub_health)
+    for h in view.partition_hubs:  # each partition hub's own machine, as node hub/<name>
+        up.add_metric([h.node], float(h.alive))
+        if h.health is not None:
+            _health(gauge, h.node, h.health)
     yield up
     yield clock
     yield from g.values()
@@ -314,7 +318,7 @@ def _recorder(view: HubView) -> Iterator[Metric]:
 
 def _partitions(view: HubView, now: float) -> Iterator[Metric]:
     """A partitioned site's other hubs, as the main hub sees them (their liveliness and their
-    last report, checked in `hub.partition.PartitionWatch`)."""
+    last report, checked in `hub.partition_watch.PartitionWatch`)."""
     if not view.partitions:
         return
     labels = ["partition"]

@@ -14,9 +14,11 @@ What crosses the mesh is small:
 - the main hub's heartbeat, which every edge's dead-man hears (outputs are the main hub's:
   rules and commands run there, and a command to a partition's node travels over the mesh);
 - each partition hub's report, about once a second on ``hub/partition/<name>/report``: its
-  streams' accounting and its recorder's state, as JSON (like ``hub/status``), and its own
-  events on ``hub/partition/<name>/events``; its liveliness token
-  ``hub/partition/<name>/alive`` tells the main hub that it is there.
+  streams' accounting and its recorder's state, as JSON (like ``hub/status``), its own
+  machine's health on ``hub/partition/<name>/health`` (a `NodeHealth` of node
+  ``hub/<name>``, as a node's), and its own events on ``hub/partition/<name>/events``; its
+  liveliness token ``hub/partition/<name>/alive`` tells the main hub that it is there
+  (`hub.partition_watch.PartitionWatch` reads them all).
 
 A partition hub runs the router, the event bus and events.log, the recorder, the node watch of
 its slice, its own health, the report, a status request on ``hub/partition/<name>/status`` and
@@ -38,35 +40,28 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import zenoh
-
-from edge.cdr import decode, encode
+from edge.cdr import encode
 from edge.config.site import SiteConfig
-from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import Event
 from edge.paths import default_data_dir
 from edge.systemd import Systemd
 from edge.threads import NamedThread
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
-from hub.node_watch import MAX_PAYLOAD_BYTES, NodeWatch
+from hub.node_watch import NodeWatch
 from hub.partition_recorders import recorder_key
 from hub.partition_snapshots import PartitionSnapshots
 from hub.read_model import (
     DiskView,
     HubView,
     ReadModel,
-    RecorderView,
-    StreamView,
-    from_jsonable,
     to_jsonable,
 )
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
-from hub.requests import json_object
 from hub.router import Router
 from hub.services import ServiceStack
 from hub.snapshots import SnapshotBuffer
@@ -123,6 +118,7 @@ class PartitionReport:
         self.period_s = period_s
         self.report_key = partition_key(keys, partition, "report")
         self.events_key = partition_key(keys, partition, "events")
+        self.health_key = partition_key(keys, partition, "health")
         self.alive_key = partition_key(keys, partition, "alive")
         self.own = partition_event_node(partition)
         self.reports = 0
@@ -138,12 +134,13 @@ class PartitionReport:
         self._pubs = {
             "report": session.declare_publisher(self.report_key),
             "events": session.declare_publisher(self.events_key),
+            "health": session.declare_publisher(self.health_key),
         }
         self._token = session.liveliness().declare_token(self.alive_key)
         self._thread.start()
 
-    def report(self) -> bytes:
-        view = self.model.snapshot(time.time_ns())
+    def report(self, view: HubView | None = None) -> bytes:
+        view = view or self.model.snapshot(time.time_ns())
         disk = view.hub_health.host.disk("data") if view.hub_health is not None else None
         return json.dumps(
             {
@@ -161,7 +158,10 @@ class PartitionReport:
     def _run(self) -> None:
         try:
             while True:
-                self._pubs["report"].put(self.report())
+                view = self.model.snapshot(time.time_ns())
+                self._pubs["report"].put(self.report(view))
+                if view.hub_health is not None:  # its machine, as a node's health (CDR)
+                    self._pubs["health"].put(encode(view.hub_health))
                 self.reports += 1
                 if self._stop.wait(self.period_s):
                     return
@@ -256,7 +256,9 @@ class PartitionRuntime:
             site.security,
             key=recorder_key(self.keys, partition),
         )
-        self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        self.hub_health = HubHealth(
+            self.data_dir, self.model, self.recorder, node=partition_event_node(partition)
+        )
         self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
         self.status = StatusService(
             self.router,
@@ -365,148 +367,3 @@ class _BusService:
     def failure(self) -> str | None:
         dead = self.bus.dead()
         return f"event subscriber thread(s) died: {', '.join(dead)}" if dead else None
-
-
-# --- on the main hub ---------------------------------------------------------------------------
-
-
-class PartitionWatch:
-    """The main hub's view of the partition hubs: whether each is there (its liveliness token),
-    its streams' accounting (into the read model next to the main hub's own, marked with the
-    hub that records them) and its recorder, and its events onto the main hub's bus."""
-
-    name = "partition-watch"
-
-    def __init__(self, router: Router, site: SiteConfig, bus: EventBus, model: ReadModel) -> None:
-        self.router = router
-        self.keys = SiteKeys(site.site)
-        self.bus = bus
-        self.model = model
-        self.owned = {name: set(site.nodes_of(name)) for name in site.hub.partitions}
-        """The nodes each partition records: the only streams its report may speak for."""
-        self._lock = threading.Lock()
-        self._streams: dict[str, tuple[StreamView, ...]] = {}
-        self._state: dict[str, dict[str, Any]] = {
-            name: {"alive": False, "report_received_ns": 0, "recorder": {}, "data_disk": {}}
-            for name in self.owned
-        }
-        self.malformed = 0
-        self._subs: list[Any] = []
-
-    def start(self) -> None:
-        session = self.router.session
-        self._publish()
-        any_part = partition_key(self.keys, "*", "")
-        self._subs = [
-            session.declare_subscriber(any_part + "report", self._on_report),
-            session.declare_subscriber(any_part + "events", self._on_event),
-            session.liveliness().declare_subscriber(
-                any_part + "alive", self._on_alive, history=True
-            ),
-        ]
-
-    def stop(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
-        self._subs = []
-
-    def failure(self) -> str | None:
-        return None
-
-    def _partition_of(self, sample: Any, what: str) -> str | None:
-        key = str(sample.key_expr)
-        parts = key.split("/")
-        name = parts[-2] if len(parts) >= 2 and parts[-1] == what else ""
-        if name not in self.owned:
-            self.malformed += 1
-            return None
-        return name
-
-    def _on_alive(self, sample: Any) -> None:
-        name = self._partition_of(sample, "alive")
-        if name is None:
-            return
-        alive = sample.kind == zenoh.SampleKind.PUT
-        with self._lock:
-            changed = self._state[name]["alive"] != alive
-            self._state[name]["alive"] = alive
-        if not changed:
-            return
-        self._publish()
-        self.bus.emit(
-            logging.INFO if alive else logging.ERROR,
-            "hub",
-            "partition_up" if alive else "partition_gone",
-            f"partition hub {name}: "
-            + (
-                "connected"
-                if alive
-                else "gone; its nodes spool until it returns ("
-                + ", ".join(sorted(self.owned[name]))
-                + ")"
-            ),
-            partition=name,
-        )
-
-    def _on_report(self, sample: Any) -> None:
-        name = self._partition_of(sample, "report")
-        if name is None:
-            return
-        payload = sample.payload.to_bytes()
-        try:
-            report = json_object(payload, MAX_PAYLOAD_BYTES)
-            unknown = set(report) - {"partition", "time_ns", "streams", "recorder", "data_disk"}
-            if unknown:
-                raise ValueError(f"unknown field(s) {sorted(unknown)[:5]}")
-            if not isinstance(report.get("streams"), list):
-                raise ValueError("streams is not a list")
-            # Checked field by field: /metrics, the dashboard and `fleetdaq status` use them.
-            views = [from_jsonable(StreamView, s) for s in report["streams"]]
-            streams = tuple(
-                dataclasses.replace(s, hub=name) for s in views if s.node in self.owned[name]
-            )
-            recorder = to_jsonable(from_jsonable(RecorderView, report.get("recorder")))
-            disk = to_jsonable(from_jsonable(DiskView, report.get("data_disk", {})))
-        except ValueError as err:
-            self.malformed += 1
-            if worth_telling(self.malformed):
-                self.bus.emit(
-                    logging.WARNING,
-                    "hub",
-                    "malformed",
-                    f"partition hub {name}: refused a report that is not valid ({err}); "
-                    f"{self.malformed} so far",
-                    partition=name,
-                )
-            return
-        with self._lock:
-            self._streams[name] = streams
-            self._state[name]["report_received_ns"] = time.time_ns()
-            self._state[name]["recorder"] = recorder
-            self._state[name]["data_disk"] = disk
-        self._publish()
-
-    def _on_event(self, sample: Any) -> None:
-        name = self._partition_of(sample, "events")
-        if name is None:
-            return
-        payload = sample.payload.to_bytes()
-        if len(payload) > MAX_PAYLOAD_BYTES:
-            self.malformed += 1
-            return
-        try:
-            event = decode(payload, Event)
-        except WireError:
-            self.malformed += 1
-            return
-        if event.node != partition_event_node(name):
-            self.malformed += 1
-            return
-        self.bus.publish(event)
-
-    def _publish(self) -> None:
-        with self._lock:
-            streams = tuple(s for name in sorted(self._streams) for s in self._streams[name])
-            state = {name: dict(s) for name, s in self._state.items()}
-        self.model.put("partition_streams", streams)
-        self.model.put("partitions", state)

@@ -137,8 +137,11 @@ class HubView:
     bus: tuple[dict[str, Any], ...] = ()
     failures: tuple[tuple[str, str], ...] = ()
     partitions: dict[str, Any] = field(default_factory=dict)
-    """The main hub's view of each partition hub (`hub.partition.PartitionWatch`): alive,
+    """The main hub's view of each partition hub (`hub.partition_watch.PartitionWatch`): alive,
     when its last report came, its recorder."""
+    partition_hubs: tuple[NodeView, ...] = ()
+    """Each partition hub as the fleet sees a machine (``hub/<name>``): alive (its liveliness
+    token) and its own health (CPU, memory, disks, temperature), from `PartitionWatch`."""
 
     def node(self, name: str) -> NodeView | None:
         return next((n for n in self.nodes if n.node == name), None)

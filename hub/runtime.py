@@ -42,10 +42,10 @@ from hub.hub_health import HubHealth
 from hub.live_plots import LivePlots
 from hub.node_watch import NodeWatch
 from hub.notify.service import EmailNotifier
-from hub.partition import PartitionWatch
 from hub.partition_live import PartitionLive
 from hub.partition_recorders import FORWARDED, PartitionRecorders
 from hub.partition_snapshots import SnapshotTriggers
+from hub.partition_watch import PartitionWatch
 from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests

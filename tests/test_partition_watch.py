@@ -1,5 +1,5 @@
-"""The main hub's view of a partition hub's report (`hub.partition.PartitionWatch`): the report
-crosses the LAN (with no ACL, anyone there can put on its key), and what it says goes into
+"""The main hub's view of a partition hub's report (`hub.partition_watch.PartitionWatch`): the
+report crosses the LAN (with no ACL, anyone there can put on its key), and what it says goes into
 `/metrics`, the dashboard and `fleetdaq status`, so it is checked field by field
 (`hub.read_model.from_jsonable`) and refused whole when anything is wrong."""
 
@@ -18,7 +18,7 @@ from edge.config.load import parse_config
 from edge.messages import Event
 from hub.bus import EventBus
 from hub.metrics import render_metrics
-from hub.partition import PartitionWatch
+from hub.partition_watch import PartitionWatch
 from hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable
 from tests.zenoh_shapes import Payload, Sample
 
@@ -183,3 +183,85 @@ def test_metrics_say_whether_each_partition_hub_is_there_and_what_its_recorder_w
     assert samples[("fleetdaq_partition_recorder_state", (*bay2, ("state", "stopped")))] == 0
     assert samples[("fleetdaq_partition_recorder_written_bytes_total", bay2)] == 99_999
     assert samples[("fleetdaq_partition_recorder_write_errors_total", bay2)] == 0
+
+
+HEALTH_KEY = "fleetdaq/parts/hub/partition/bay2/health"
+
+
+def _hub_health(node: str, tmp: Any) -> bytes:
+    from edge.cdr import encode
+    from edge.host_metrics import HostMetricsReader
+    from edge.messages import NodeHealth, TimeSyncStatus
+
+    return encode(
+        NodeHealth(
+            time_ns=time.time_ns(),
+            node=node,
+            version="0.1.0",
+            uptime_s=42.0,
+            host=HostMetricsReader({"data": tmp}).read(),
+            streams=(),
+            clock=TimeSyncStatus.unknown(),
+        )
+    )
+
+
+def test_a_partition_hubs_own_health_is_a_machine_of_the_fleet(tmp_path: Any) -> None:
+    """bay2's machine (CPU, memory, disks) reaches `partition_hubs`, `/metrics` and the
+    Foxglove diagnostics as node ``hub/bay2``; a health that is not bay2's is refused whole."""
+    import zenoh
+
+    from hub.foxglove.diagnostics import diagnostic_array
+
+    seen: list[Event] = []
+    bus = EventBus()
+    bus.subscribe("test", seen.append)
+    bus.start()
+    model = ReadModel("parts")
+    watch = PartitionWatch(None, parse_config(SITE, "<t>"), bus, model)  # type: ignore[arg-type]
+    try:
+        watch._publish()
+        (hub,) = model.snapshot(time.time_ns()).partition_hubs
+        assert (hub.node, hub.alive, hub.health) == ("hub/bay2", False, None)
+        alive = Sample(
+            Payload(b""), "fleetdaq/parts/hub/partition/bay2/alive", zenoh.SampleKind.PUT
+        )
+        watch._on_alive(alive)
+        watch._on_health(Sample(Payload(_hub_health("hub/bay2", tmp_path)), HEALTH_KEY))
+        good = model.snapshot(time.time_ns())
+        (hub,) = good.partition_hubs
+        assert hub.alive
+        assert hub.health is not None
+        assert hub.health.uptime_s == 42.0
+        assert hub.health.host.disk("data") is not None
+        hostile = [
+            _hub_health("hub", tmp_path),  # the main hub's name
+            _hub_health("hub/bay3", tmp_path),  # another partition's
+            _hub_health("cell-a", tmp_path),  # a node's
+            _hub_health("hub/bay2", tmp_path)[:-3],  # cut short
+            b"\x00" * 64,
+            b"x" * 100_000,
+        ]
+        for raw in hostile:
+            watch._on_health(Sample(Payload(raw), HEALTH_KEY))
+        view = model.snapshot(time.time_ns())
+        assert view.partition_hubs == good.partition_hubs, "the last good health stands"
+    finally:
+        bus.stop()
+    assert watch.malformed == len(hostile)
+    told = [e for e in seen if e.tag == "malformed"]
+    assert len(told) == 1, told
+    assert "refused its health" in told[0].message
+    assert "it says it is of 'hub'" in told[0].message
+    samples = _samples(render_metrics(view)[0])
+    node = (("node", "hub/bay2"),)
+    assert samples[("fleetdaq_node_up", node)] == 1.0
+    assert samples[("fleetdaq_node_uptime_seconds", node)] == 42.0
+    assert 0 <= samples[("fleetdaq_node_cpu_usage_ratio", node)] <= 1
+    assert samples[("fleetdaq_node_disk_total_bytes", (*node, ("role", "data")))] > 0
+    status = diagnostic_array(view, {}, time.time_ns())["status"]
+    bay2 = next(s for s in status if s["name"] == "fleetdaq/hub/bay2")
+    values = {v["key"]: v["value"] for v in bay2["values"]}
+    assert values["version"] == "0.1.0"
+    assert values["disk data free"].endswith(str(tmp_path))
+    assert values["recorder"] == "no report yet"

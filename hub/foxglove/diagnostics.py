@@ -118,6 +118,7 @@ def diagnostic_array(
 ) -> dict[str, Any]:
     status = [node_status(view.node(n), n, cs, view, now_ns) for n, cs in streams.items()]
     status.append(hub_status(view, now_ns))
+    status += [partition_hub_status(view, h, now_ns) for h in view.partition_hubs]
     status.append(alarms_status(view))
     return {"header": {"stamp": stamp(now_ns), "frame_id": ""}, "status": status}
 
@@ -253,6 +254,30 @@ def hub_status(view: HubView, now_ns: int) -> dict[str, Any]:
         s.problem(ERROR, f"recorder {r.state}")
     elif r.state != "recording":
         s.problem(WARN, f"recorder {r.state}")
+    return s.done()
+
+
+def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> dict[str, Any]:
+    """A partition hub (``hub/<name>``): its machine, from its own health, and its recorder,
+    from its report."""
+    s = _Status(f"fleetdaq/{hub.node}", hub.node)
+    h = hub.health
+    if not hub.alive:
+        s.problem(ERROR, "gone (its nodes spool until it returns)")
+    if h is None:
+        s.problem(STALE, "no health from it yet")
+    else:
+        if now_ns - hub.health_received_ns > HEALTH_STALE_NS:
+            s.problem(STALE, f"its health is {(now_ns - hub.health_received_ns) / 1e9:.0f} s old")
+        _software(s, h)
+        _host(s, h.host, "data")
+    r = (view.partitions.get(hub.node.removeprefix("hub/")) or {}).get("recorder") or {}
+    s.value("recorder", r.get("state", "no report yet"))
+    s.value("session", r.get("session") or "none")
+    if r.get("state") in ("failed", "disk_error"):
+        s.problem(ERROR, f"recorder {r['state']}")
+    elif r and r.get("state") != "recording":
+        s.problem(WARN, f"recorder {r.get('state')}")
     return s.done()
 
 

@@ -342,6 +342,10 @@ def partitions(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
             .some((dt) => dt.textContent === k && dt.nextSibling.textContent.startsWith(state))"""
         page.wait_for_function(shows, arg=[part, "recording"])
         result["before"] = recorder_facts(page)
+        hub = f"hub/{args['partition']}"  # the partition hub's own machine, beside the nodes
+        result["fleet"] = wait_rows(
+            page, "Fleet", lambda r: any(x[0] == hub and x[2] != "–" for x in r), f"{hub}'s health"
+        )
         login(page, args["user"], args["password"])
         page.get_by_text(f"Logged in as {args['user']}").wait_for()
         page.get_by_role("button", name="Stop", exact=True).click()

@@ -359,9 +359,10 @@ nodes:
 
 
 def test_a_stop_from_the_page_stops_every_hub_of_a_partitioned_site(tmp_path: Path):
-    """A main hub, a partition hub and an edge each: the Recorder panel shows the partition's
-    recorder, the stop's confirmation says it is for every hub, and the stop reaches the
-    partition hub (its answer in the toast, its audit naming the page's user)."""
+    """A main hub, a partition hub and an edge each: the Fleet panel shows the partition hub's
+    machine (hub/bay2), the Recorder panel its recorder, the stop's confirmation says it is for
+    every hub, and the stop reaches the partition hub (its answer in the toast, its audit
+    naming the page's user)."""
     needs_a_namespace()
     users = tmp_path / "users"
     add_user(users)
@@ -398,6 +399,10 @@ def test_a_stop_from_the_page_stops_every_hub_of_a_partitioned_site(tmp_path: Pa
             assert proc.terminate(30) == 0, proc.output()[-3000:]
         assert ns.close() == []
     assert result["ok"], result.get("error")
+    fleet = {row[0]: row for row in result["fleet"]}
+    assert set(fleet) == {"wec", "cell", "hub", "hub/bay2"}, fleet
+    assert fleet["hub/bay2"][1:3] == ["yes", "0.1.0"], fleet["hub/bay2"]
+    assert fleet["hub/bay2"][4].endswith(" %"), "its CPU"
     assert result["after"]["State"] == "stopped"
     assert result["after"]["Partition bay2"].startswith("stopped · ")
     assert re.search(r" · disk [\d.]+ % free$", result["after"]["Partition bay2"])

@@ -394,6 +394,8 @@
     const byNode = new Map(((v.fleet && v.fleet.nodes) || []).map((n) => [n.node, n]));
     const rows = v.nodes.map((n) => ({ name: n.node, alive: n.alive, h: n.health, t: byNode.get(n.node), rx: n.health_received_ns }));
     if (v.hub_health) rows.push({ name: "hub", alive: true, h: v.hub_health, t: byNode.get("hub"), rx: v.hub_health.time_ns });
+    // A partitioned site: each partition hub's own machine (hub/<name>), from its health.
+    for (const p of v.partition_hubs || []) rows.push({ name: p.node, alive: p.alive, h: p.health, t: byNode.get(p.node), rx: p.health_received_ns });
     return rows;
   }
   function renderFleet(v) {
