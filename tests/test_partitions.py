@@ -209,6 +209,27 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
     assert recorder["state"] == "recording"
     assert Path(recorder["session_dir"]).parent == rig.tmp / "bay2"
 
+    # bay2's own machine is one of the fleet's on the main hub (hub/bay2), as a node's health.
+    rig.client.wait(
+        lambda s: any(h["health"] and h["alive"] for h in s["partition_hubs"]),
+        20,
+        "bay2's own health on the main hub",
+    )
+    screen = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "status", "--config", str(rig.cfg)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert screen.returncode in (0, 1), screen.stderr  # 1 if the host's disk is nearly full
+    rows = {line.split()[0]: line.split() for line in screen.stdout.splitlines() if line}
+    assert rows["hub/bay2"][1:3] == ["yes", "0.1.0"], screen.stdout
+    for node in BAY2_SLICE:
+        assert rows[f"{node}/wave"][1] == "bay2", screen.stdout  # recorded by bay2
+    assert "partition bay2: recording" in screen.stdout
+
     # The partition hub goes away: its edges spool, the main slice records on.
     main_before = {n: _acked(status, n) for n in MAIN_SLICE}
     assert bay2.terminate() == 0
@@ -232,6 +253,20 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         "node_down/hub/bay2 raised",
         what="the main hub's alarm for the partition hub gone (10 s by default)",
     )
+    screen = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "status", "--config", str(rig.cfg)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert screen.returncode == 1, screen.stdout + screen.stderr
+    assert "partition hub bay2: gone" in screen.stdout
+    assert "alarm node_down/hub/bay2: active_unacked (critical)" in screen.stdout
+    assert "partition bay2: GONE" in screen.stdout
+    hub_row = next(line for line in screen.stdout.splitlines() if line.startswith("hub/bay2 "))
+    assert hub_row.split()[1] == "NO", hub_row
 
     # It returns: its edges replay into it, and catch up with live.
     back_ns = time.time_ns()

@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "rec": "fleetdaq.cli.rec:rec",
     "report": "fleetdaq.cli.report:report",
     "rules": "fleetdaq.cli.rules:rules",
+    "status": "fleetdaq.cli.status:status",
     "users": "fleetdaq.cli.users:users",
     "verify": "fleetdaq.cli.verify:verify",
 }

@@ -3,7 +3,6 @@ with a reply over Zenoh), and the alarm performance report of a recording."""
 
 from __future__ import annotations
 
-import datetime as dt
 import getpass
 import json
 import math
@@ -16,6 +15,7 @@ from typing import Any
 import click
 
 from fleetdaq.cli.common import fail, hub_request
+from fleetdaq.text import text_table, when_text
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
 _UNITS = {None: 1.0, "s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0, "d": 86400.0}
@@ -33,12 +33,6 @@ def _request(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> dic
     return hub_request(config, connect, "alarms", body)
 
 
-def _when(ns: int) -> str:
-    if not ns:
-        return "-"
-    return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%SZ")
-
-
 def _table(alarms: list[dict[str, Any]], everything: bool) -> str:
     rows = [("name", "state", "severity", "since", "value", "count")]
     order = {"critical": 0, "major": 1, "minor": 2, "info": 3}
@@ -54,10 +48,11 @@ def _table(alarms: list[dict[str, Any]], everything: bool) -> str:
             " (condition holds)" if a["state"] in ("shelved", "disabled") and a["active"] else ""
         )
         if a["state"] == "shelved":
-            state += f" until {_when(a['shelved_until_ns'])}"
-        rows.append((a["name"], state, a["severity"], _when(a["since_ns"]), text, str(a["count"])))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+            state += f" until {when_text(a['shelved_until_ns'])}"
+        rows.append(
+            (a["name"], state, a["severity"], when_text(a["since_ns"]), text, str(a["count"]))
+        )
+    lines = text_table(rows)
     if len(rows) == 1:
         lines.append(f"no alarm in alarm ({len(alarms)} defined; --all lists them)")
     return "\n".join(lines)

@@ -115,7 +115,8 @@ def open_client(
         return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms, tls=tls))
     except zenoh.ZError as err:
         hint = " (is your certificate from this site's CA?)" if tls is not None else ""
-        fail(f"cannot reach the hub at {', '.join(endpoints)}: {err}{hint}", 2)
+        why = str(err).split(" at /", 1)[0]  # not the Rust source file it was raised in
+        fail(f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}", 2)
 
 
 def operator_key(site: SiteConfig, what: str) -> str:
@@ -160,7 +161,12 @@ def hub_request(
             fail(f"security.tls is on, but {err}", 2)
         for reply in session.get(key, payload=payload, timeout=timeout):
             if reply.ok is not None:
-                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                try:
+                    out = json.loads(reply.ok.payload.to_bytes())
+                except ValueError as err:
+                    fail(f"the answer on {key} is not JSON ({err}): is that a fleetdaq hub?", 2)
+                if not isinstance(out, dict):
+                    fail(f"the answer on {key} is not a JSON object: is that a fleetdaq hub?", 2)
                 return out
     finally:
         session.close()

@@ -15,15 +15,7 @@ from typing import Any
 import click
 
 from fleetdaq.cli.common import fail, hub_request
-
-
-def _size(n: int) -> str:
-    x = float(n)
-    for unit in ("B", "kB", "MB", "GB"):
-        if x < 1000:
-            return f"{x:.0f} {unit}" if unit == "B" else f"{x:.1f} {unit}"
-        x /= 1000
-    return f"{x:.1f} TB"
+from fleetdaq.text import size_text
 
 
 def _show(reply: dict[str, Any]) -> None:
@@ -31,9 +23,9 @@ def _show(reply: dict[str, Any]) -> None:
     click.echo(f"recorder     {r['state']}")
     click.echo(f"session      {r['session'] or '-'}  ({r['session_dir'] or '-'})")
     current = r["current_file"] or "-"
-    click.echo(f"current file {current}  {_size(r['current_file_bytes'])}")
+    click.echo(f"current file {current}  {size_text(r['current_file_bytes'])}")
     click.echo(f"files        {len(r['files'])} finished in this session")
-    click.echo(f"written      {_size(r['bytes_written'])} since the hub started")
+    click.echo(f"written      {size_text(r['bytes_written'])} since the hub started")
     if r["write_errors"] or r["abandoned_files"]:
         click.echo(
             f"write errors {r['write_errors']}; abandoned files: "
@@ -42,7 +34,7 @@ def _show(reply: dict[str, Any]) -> None:
     if s:
         click.echo(
             f"snapshot     holds {s['covers_s']:.0f} s of {s['seconds']:g} s "
-            f"({_size(s['held_bytes'])} of {_size(s['max_bytes'])}); "
+            f"({size_text(s['held_bytes'])} of {size_text(s['max_bytes'])}); "
             f"{s['written']} written" + (f", last {s['last']}" if s["last"] else "")
         )
     else:
@@ -57,7 +49,7 @@ def _show(reply: dict[str, Any]) -> None:
             line = (
                 f"{pr.get('state', '?')} {pr.get('session') or '-'}, current file "
                 f"{Path(pr.get('current_file') or '-').name} "
-                f"{_size(int(pr.get('current_file_bytes') or 0))}"
+                f"{size_text(int(pr.get('current_file_bytes') or 0))}"
             )
             disk = p.get("data_disk") or {}
             if disk.get("total_bytes"):

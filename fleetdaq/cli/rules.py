@@ -3,18 +3,12 @@ their results, and the hub's cross-node interlocks."""
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 
 import click
 
 from fleetdaq.cli.common import hub_request
-
-
-def _when(ns: int) -> str:
-    if not ns:
-        return "-"
-    return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%SZ")
+from fleetdaq.text import text_table, when_text
 
 
 @click.command()
@@ -30,16 +24,15 @@ def rules(config: str, connect: tuple[str, ...], as_json: bool) -> None:
     rows = [("rule", "state", "since", "fired", "last fired", "last result")]
     for r in states["rules"]:
         rows.append(
-            (r["name"], r["state"], _when(r["since_ns"]), str(r["fired"]),
-             _when(r["last_fired_ns"]), r["last_result"] or "-")
+            (r["name"], r["state"], when_text(r["since_ns"]), str(r["fired"]),
+             when_text(r["last_fired_ns"]), r["last_result"] or "-")
         )  # fmt: skip
     for i in states["interlocks"]:
         rows.append(
-            (f"interlock {i['name']}", "ACTIVE" if i["active"] else "clear", _when(i["since_ns"]),
-             str(i["trips"]), "-", ", ".join(i["outputs"]))
+            (f"interlock {i['name']}", "ACTIVE" if i["active"] else "clear",
+             when_text(i["since_ns"]), str(i["trips"]), "-", ", ".join(i["outputs"]))
         )  # fmt: skip
-    widths = [max(len(row[k]) for row in rows) for k in range(len(rows[0]))]
-    for row in rows:
-        click.echo("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+    for line in text_table(rows):
+        click.echo(line)
     if len(rows) == 1:
         click.echo("no rules or interlocks in this site file")

@@ -10,34 +10,10 @@ from rich.table import Table
 from rich.text import Text
 
 from fleetdaq.fleet.status import FleetStatus, HostStatus
+from fleetdaq.text import duration_text, size_text
 
 _ROLE = {"hub": "hub", "edges": "edge", "ptp_grandmaster": "gm"}
 _LEVEL_STYLE = {"ok": "green", "warn": "yellow", "fail": "red"}
-
-
-def size(n: int | None) -> str:
-    if n is None:
-        return "-"
-    x = float(n)
-    for unit in ("B", "kB", "MB", "GB", "TB"):
-        if x < 1000 or unit == "TB":
-            return f"{x:.0f} {unit}" if unit == "B" else f"{x:.1f} {unit}"
-        x /= 1000
-    raise AssertionError("unreachable")
-
-
-def duration(seconds: float | None) -> str:
-    if seconds is None:
-        return "-"
-    s = int(seconds)
-    days, s = divmod(s, 86400)
-    hours, s = divmod(s, 3600)
-    minutes, s = divmod(s, 60)
-    if days:
-        return f"{days}d {hours}h"
-    if hours:
-        return f"{hours}h {minutes:02d}m"
-    return f"{minutes}m {s:02d}s"
 
 
 def _services(h: HostStatus) -> Text:
@@ -71,7 +47,7 @@ def _disk(h: HostStatus) -> str:
     lines = []
     for d in h.dirs:
         pct = f" ({d.free_fraction:.0%})" if d.free_fraction is not None else ""
-        lines.append(f"{d.role} {size(d.free_bytes)}{pct}")
+        lines.append(f"{d.role} {size_text(d.free_bytes)}{pct}")
     return "\n".join(lines) or "-"
 
 
@@ -81,7 +57,7 @@ def _recorder(h: HostStatus) -> str:
         return "-"
     if not r.current_file:
         return r.state
-    return f"{r.state} {posixpath.basename(r.current_file)} {size(r.current_file_bytes)}"
+    return f"{r.state} {posixpath.basename(r.current_file)} {size_text(r.current_file_bytes)}"
 
 
 def render(status: FleetStatus, console: Console) -> None:
@@ -117,10 +93,10 @@ def render(status: FleetStatus, console: Console) -> None:
             ssh,
             _services(h),
             version,
-            duration(h.uptime_s),
+            duration_text(h.uptime_s),
             _time(h),
             _disk(h),
-            size(spool.bytes) if spool is not None else "-",
+            size_text(spool.bytes) if spool is not None else "-",
             _recorder(h),
         )
     console.print(table)
