@@ -255,6 +255,11 @@ class PartitionRuntime:
             self.snapshots.snapshot if self.snapshots is not None else None,
             site.security,
             key=recorder_key(self.keys, partition),
+            snapshot_setting=(
+                f"hub.partitions.{partition}.snapshot.enabled"
+                if site.hub.partitions[partition].snapshot is not None
+                else "hub.snapshot.enabled"
+            ),
         )
         self.hub_health = HubHealth(
             self.data_dir, self.model, self.recorder, node=partition_event_node(partition)

@@ -74,10 +74,14 @@ class PartitionRecorders:
         partitions: list[str],
         bus: EventBus,
         timeout_s: float = ANSWER_S,
+        snapshots_off: frozenset[str] = frozenset(),
     ) -> None:
+        """`snapshots_off`: the partitions whose site file keeps no snapshot buffer on their
+        hub; a snapshot is not asked of them, and their answer says why (not a failure)."""
         self.router = router
         self.keys = keys
         self.partitions = list(partitions)
+        self.snapshots_off = snapshots_off
         self.bus = bus
         self.timeout_s = timeout_s
         self.asked = 0
@@ -87,14 +91,29 @@ class PartitionRecorders:
         """Send `request` to every partition now; the returned call waits for their answers."""
         payload = json.dumps(request).encode()
         session = self.router.session
+        off = self.snapshots_off if request.get("action") == "snapshot" else frozenset()
         pending = {
             name: session.get(
                 recorder_key(self.keys, name), payload=payload, timeout=self.timeout_s
             )
             for name in self.partitions
+            if name not in off
         }
         self.asked += 1
-        return lambda: {name: self._answer(name, replies) for name, replies in pending.items()}
+        kept_none = {
+            name: {
+                "ok": True,
+                "result": f"no snapshot: this hub keeps no snapshot buffer "
+                f"(hub.partitions.{name}.snapshot.enabled is false)",
+                "error": "",
+            }
+            for name in self.partitions
+            if name in off
+        }
+        return lambda: {
+            **{name: self._answer(name, replies) for name, replies in pending.items()},
+            **kept_none,
+        }
 
     def pass_on(self, request: dict[str, str]) -> None:
         """`ask` without waiting (a rule's `record:` action: a rule never waits on another

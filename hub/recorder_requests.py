@@ -43,7 +43,10 @@ class RecorderRequests(RequestService):
         security: SecurityConfig | None = None,
         key: str | None = None,
         partitions: PartitionRecorders | None = None,
+        snapshot_setting: str = "hub.snapshot.enabled",
     ) -> None:
+        """`snapshot_setting`: the site file's key that switches this hub's snapshot buffer off
+        (a partition hub's is its own), named when a snapshot is asked of a hub without one."""
         # A partition hub's (`key` given): the main hub passes requests on to its key itself.
         super().__init__(
             router,
@@ -55,6 +58,7 @@ class RecorderRequests(RequestService):
         self.recorder = recorder
         self.view = view
         self.snapshot = snapshot
+        self.snapshot_setting = snapshot_setting
         self.partitions = partitions
         """The main hub of a partitioned site: start, stop, split and snapshot reach every
         partition hub."""
@@ -92,7 +96,7 @@ class RecorderRequests(RequestService):
             ok = result.startswith("closed")
         elif action == "snapshot":
             if self.snapshot is None:
-                ok, result = False, "the snapshot buffer is switched off (hub.snapshot.enabled)"
+                ok, result = False, f"the snapshot buffer is switched off ({self.snapshot_setting})"
             else:
                 ok, result = self.snapshot(who, note)
         answers = collect() if collect is not None else {}

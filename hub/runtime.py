@@ -156,7 +156,17 @@ class HubRuntime:
             self._asked_snapshot if self.snapshots is not None else None,
             site.security,
             partitions=(
-                PartitionRecorders(self.router, self.keys, list(site.hub.partitions), self.bus)
+                PartitionRecorders(
+                    self.router,
+                    self.keys,
+                    list(site.hub.partitions),
+                    self.bus,
+                    snapshots_off=frozenset(
+                        name
+                        for name, part in site.hub.partitions.items()
+                        if not (part.snapshot or site.hub.snapshot).enabled
+                    ),
+                )
                 if site.hub.partitions
                 else None
             ),

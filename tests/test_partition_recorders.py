@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -140,3 +141,64 @@ def test_passed_on_without_waiting_a_partition_that_did_not_do_it_is_a_warning()
         ("partition_not_done", "bay3", "split")
     ]
     assert "record split for rule:layers not done" in seen[0].message
+
+
+def test_a_snapshot_is_not_asked_of_a_partition_that_keeps_no_buffer_and_that_is_no_failure():
+    """`hub.partitions.bay3.snapshot: {enabled: false}`: a site's snapshot is bay2's and the
+    main hub's; bay3's answer says why it has none, and `rec snapshot` is not a failure for it.
+    Every other action still goes to bay3."""
+    ok = Reply(Sample(Payload(b'{"ok": true, "result": "wrote snapshots/x"}')))
+    session = _Session({"bay2": [ok], "bay3": [ok]})
+    bus = EventBus()
+    bus.start()
+    try:
+        parts = PartitionRecorders(
+            _Router(session),  # type: ignore[arg-type]
+            SiteKeys("parts"),
+            ["bay2", "bay3"],
+            bus,
+            snapshots_off=frozenset({"bay3"}),
+        )
+        request = {"action": "snapshot", "user": "ana", "host": "shore", "note": ""}
+        answers: dict[str, Any] = parts.ask(request)()
+        assert [k.split("/")[-2] for k, _ in session.asked] == ["bay2"]
+        assert answers["bay2"]["ok"] is True
+        assert answers["bay3"] == {
+            "ok": True,
+            "result": "no snapshot: this hub keeps no snapshot buffer "
+            "(hub.partitions.bay3.snapshot.enabled is false)",
+            "error": "",
+        }
+        parts.ask({**request, "action": "split"})()
+        assert [k.split("/")[-2] for k, _ in session.asked[1:]] == ["bay2", "bay3"]
+    finally:
+        bus.stop()
+
+
+def test_the_main_hub_asks_no_snapshot_of_the_partitions_its_site_file_switches_off(
+    tmp_path: Path,
+) -> None:
+    from edge.config.load import parse_config
+    from hub.runtime import HubRuntime
+
+    site = parse_config(
+        """
+site: p
+hub:
+  listen: [tcp/127.0.0.1:7999]
+  dashboard: {enabled: false}
+  partitions:
+    bay2: {listen: [tcp/127.0.0.1:7998], nodes: [cell], snapshot: {enabled: false}}
+    bay3: {listen: [tcp/127.0.0.1:7997], nodes: [env], snapshot: {seconds: 10}}
+    bay4: {listen: [tcp/127.0.0.1:7996], nodes: [aux]}
+nodes:
+  wec: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+  cell: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+  env: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+  aux: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+""",
+        "p.yaml",
+    )
+    parts = HubRuntime(site, tmp_path).recorder_requests.partitions  # built, not started
+    assert parts is not None
+    assert parts.snapshots_off == {"bay2"}

@@ -74,7 +74,8 @@ class PartitionConfig(Strict):
     two hubs on one machine never share a session folder; `fleetdaq hub --data` overrides)."""
     snapshot: SnapshotConfig | None = None
     """This hub's snapshot buffer, when its machine needs other bounds than the main hub's
-    (default: ``hub.snapshot``). Off here, a snapshot asked of the site says so for this hub."""
+    (default: ``hub.snapshot``). Off here, a snapshot asked of the site is not asked of this hub
+    (the reply says it keeps none; not a failure)."""
 
 
 class HubConfig(Strict):
