@@ -9,6 +9,7 @@ text or wrong-typed values never crash the command nor reach the terminal as esc
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -248,3 +249,36 @@ def test_attention_names_each_thing_to_look_at() -> None:
     lines, todo = render(healthy, "hub")
     assert todo == []
     assert lines[-1].startswith("all well")
+
+
+def test_a_watch_says_when_the_hub_does_not_answer_and_shows_it_when_it_does(
+    stray: tuple[Path, dict[str, bytes]],
+) -> None:
+    """`--watch`: a hub restarting is a line saying so, not the end of the watch."""
+    cfg, answer = stray
+    answer["bytes"] = b"junk"  # not an answer: as no hub
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetdaq", "status", "--config", str(cfg), "--watch", "0.5"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        assert first.startswith("no answer at "), first
+        answer["bytes"] = json.dumps(
+            {"site": "statustest", "recorder": {"state": "recording"}}
+        ).encode()
+        for line in proc.stdout:  # redrawn once the "hub" answers
+            if line.startswith("all well"):
+                break
+        else:
+            raise AssertionError("the watch ended without showing the answer")
+        assert proc.poll() is None, "still watching"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    assert proc.stderr is not None
+    assert "is not JSON" in proc.stderr.read()

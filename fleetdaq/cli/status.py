@@ -21,7 +21,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request
+from fleetdaq.cli.common import fail, hub_request, load_site
 from fleetdaq.text import duration_text, size_text, text_table, when_text
 
 IN_ALARM = frozenset({"active_unacked", "active_acked", "returned_unacked"})
@@ -243,7 +243,8 @@ def render(view: dict[str, Any], what: str) -> tuple[list[str], list[str]]:
     type=click.FloatRange(min=0.5),
     default=None,
     metavar="SECONDS",
-    help="Ask again every SECONDS and redraw, until Ctrl-C.",
+    help="Ask again every SECONDS and redraw, until Ctrl-C (a hub that does not answer is "
+    "said and asked again).",
 )
 def status(
     config: str,
@@ -256,11 +257,25 @@ def status(
     (exit 0 all well, 1 something needs attention, 2 no hub answered)."""
     what = f"partition/{partition}/status" if partition is not None else "status"
     title = f"partition hub {partition}" if partition is not None else "hub"
+    site = load_site(config)  # a bad file or partition name ends even a watch, at once
+    if partition is not None and partition not in site.hub.partitions:
+        named = ", ".join(site.hub.partitions) or "none"
+        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
     try:
         while True:
-            view = hub_request(config, connect, what, None, partition=partition)
-            if not isinstance(view, dict) or "recorder" not in view:
-                fail(f"the hub's status answer is not one this fleetdaq reads: {_t(view)[:200]}")
+            try:
+                view = hub_request(config, connect, what, None, partition=partition)
+                if "recorder" not in view:
+                    fail(
+                        f"the hub's status answer is not one this fleetdaq reads: {_t(view)[:200]}"
+                    )
+            except SystemExit:
+                if watch is None:
+                    raise
+                # Watching: the hub may be restarting; say so under its reason, and ask again.
+                click.echo(f"no answer at {when_text(time.time_ns())}; asking again in {watch:g} s")
+                time.sleep(watch)
+                continue
             if as_json:
                 click.echo(json.dumps(view, indent=2))
                 todo = attention(view)
