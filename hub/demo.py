@@ -257,6 +257,13 @@ def run_demo(
             highlight=False,
             soft_wrap=True,
         )
+    connect = f" --connect {listen}" if listen else ""
+    console.print(
+        f"from another terminal: fleetdaq status --config {config}{connect}  "
+        "(and alarms, rec, rules, out with the same options)",
+        highlight=False,
+        soft_wrap=True,
+    )
     endpoint = listen or None
     session = h.recorder.session
     assert session is not None

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -78,3 +79,8 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
     assert list(empty.iterdir()) == [], "the demo left nothing where it ran"
     assert summary["dashboard"]["url"].startswith("http://127.0.0.1:")
     assert "log in as demo / " in r.stderr
+    # How to look from another terminal: a site file that exists, and the hub's endpoint.
+    hint = re.search(r"fleetdaq status --config (\S+) --connect (\S+)", r.stderr)
+    assert hint, r.stderr[:2000]
+    assert Path(hint[1]).is_file()
+    assert hint[2].startswith("tcp/127.0.0.1:")
