@@ -169,6 +169,18 @@ def wait_logged(log: Path, *texts: str, timeout: float = 30, what: str) -> str:
     return found
 
 
+def _status_screen(rig: Rig) -> subprocess.CompletedProcess[str]:
+    """`fleetdaq status` of the main hub, as an operator runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "status", "--config", str(rig.cfg)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
 def _contiguous(seqs: list[int]) -> bool:
     return sorted(set(seqs)) == list(range(max(seqs) + 1))
 
@@ -215,14 +227,7 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         20,
         "bay2's own health on the main hub",
     )
-    screen = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "status", "--config", str(rig.cfg)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    screen = _status_screen(rig)
     assert screen.returncode in (0, 1), screen.stderr  # 1 if the host's disk is nearly full
     rows = {line.split()[0]: line.split() for line in screen.stdout.splitlines() if line}
     assert rows["hub/bay2"][1:3] == ["yes", "0.1.0"], screen.stdout
@@ -253,14 +258,7 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         "node_down/hub/bay2 raised",
         what="the main hub's alarm for the partition hub gone (10 s by default)",
     )
-    screen = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "status", "--config", str(rig.cfg)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    screen = _status_screen(rig)
     assert screen.returncode == 1, screen.stdout + screen.stderr
     assert "partition hub bay2: gone" in screen.stdout
     assert "alarm node_down/hub/bay2: active_unacked (critical)" in screen.stdout
