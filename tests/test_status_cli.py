@@ -4,7 +4,9 @@ Against a real hub and a real sim edge (each its own process, Zenoh on loopback)
 (exit 0) with every node and stream on the screen, then the edge gone (exit 1, and the screen
 says why), then no hub (exit 2, one line). Against a router of the test's own that answers the
 status key with what a stray host could put there: garbage is one line and exit 2, and hostile
-text or wrong-typed values never crash the command nor reach the terminal as escape sequences."""
+text or wrong-typed values never crash the command nor reach the terminal as escape sequences.
+The other commands that print a hub's answer (alarms, rules, rec, out, ptp fleet) say in one
+line when they cannot read it (a hub of another version), never with a traceback."""
 
 from __future__ import annotations
 
@@ -134,8 +136,9 @@ def test_status_of_a_running_site_then_a_node_gone_then_no_hub(tmp_path: Path) -
 
 @pytest.fixture
 def stray(tmp_path: Path) -> Iterator[tuple[Path, dict[str, bytes]]]:
-    """A Zenoh router of the test's own on the site's port answering the status key with
-    ``answer["bytes"]``: a stray host on the LAN (without TLS anyone may answer there)."""
+    """A Zenoh router of the test's own on the site's port answering every hub service's key
+    with ``answer["bytes"]``: a stray host on the LAN (without TLS anyone may answer there), or
+    a hub of another fleetdaq version."""
     import zenoh
 
     from edge.keys import SiteKeys
@@ -146,8 +149,10 @@ def stray(tmp_path: Path) -> Iterator[tuple[Path, dict[str, bytes]]]:
     cfg.write_text(SITE.format(port=port))
     answer = {"bytes": b""}
     session = zenoh.open(router_config([f"tcp/127.0.0.1:{port}"]))
-    key = SiteKeys("statustest").hub("status")
-    queryable = session.declare_queryable(key, lambda q: q.reply(key, answer["bytes"]))
+    # Every hub service: status, alarms, rules, recorder, out.
+    queryable = session.declare_queryable(
+        SiteKeys("statustest").hub("**"), lambda q: q.reply(q.key_expr, answer["bytes"])
+    )
     try:
         yield cfg, answer
     finally:
@@ -282,3 +287,54 @@ def test_a_watch_says_when_the_hub_does_not_answer_and_shows_it_when_it_does(
         assert proc.wait(30) == 0
     assert proc.stderr is not None
     assert "is not JSON" in proc.stderr.read()
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["alarms"],
+        ["alarms", "ack", "x"],
+        ["rules"],
+        ["rec", "status"],
+        ["rec", "split"],
+        ["out", "list"],
+        ["out", "set", "wec/valve", "1"],
+    ],
+)
+@pytest.mark.parametrize("payload", [b'{"ok": true}', b'{"ok": true, "alarms": 5, "reply": []}'])
+def test_every_command_reading_a_hub_answer_says_so_in_one_line_when_it_cannot(
+    stray: tuple[Path, dict[str, bytes]], command: list[str], payload: bytes
+) -> None:
+    """What a hub of another fleetdaq version (or not a hub) answers: one line, exit 2."""
+    cfg, answer = stray
+    answer["bytes"] = payload
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", *command, "--config", str(cfg)],
+        cwd=REPO,
+        capture_output=True,
+        check=False,
+        text=True,
+        timeout=60,
+    )
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "the hub's answer is not one this fleetdaq (0.1.0) reads" in r.stderr
+
+
+def test_ptp_fleet_says_so_in_one_line_when_it_cannot_read_the_fleet(
+    stray: tuple[Path, dict[str, bytes]],
+) -> None:
+    cfg, answer = stray
+    answer["bytes"] = b'{"fleet": {"nodes": 5}, "nodes": []}'
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "ptp", "fleet", "--config", str(cfg)],
+        cwd=REPO,
+        capture_output=True,
+        check=False,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "the hub's answer is not one this fleetdaq (0.1.0) reads" in r.stderr

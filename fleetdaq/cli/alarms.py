@@ -14,7 +14,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request
+from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
 from fleetdaq.text import text_table, when_text
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
@@ -72,6 +72,7 @@ def _common(f: Any) -> Any:
 @click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
 @click.option("--json", "as_json", is_flag=True, help="Every alarm as JSON.")
 @click.option("--all", "everything", is_flag=True, help="Also the alarms that are normal.")
+@reads_hub_answer
 def alarms(
     ctx: click.Context,
     config: str | None,
@@ -91,6 +92,7 @@ def alarms(
         click.echo(_table(reply["alarms"], everything))
 
 
+@reads_hub_answer
 def _act(
     config: str,
     connect: tuple[str, ...],

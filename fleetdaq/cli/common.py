@@ -9,13 +9,17 @@ import os
 import signal
 import sys
 import threading
+import typing
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 import click
 
 if TYPE_CHECKING:
     from edge.config.site import SiteConfig
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
@@ -176,6 +180,28 @@ def hub_request(
         else "is it running?"
     )
     fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why})", 2)
+
+
+def reads_hub_answer(f: F) -> F:
+    """For a command that prints what a hub answered: an answer it cannot read (a field
+    missing or of another type: a hub of another fleetdaq version, or not a fleetdaq hub at
+    all) is one line and exit 2, not a traceback."""
+    import functools
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return f(*args, **kwargs)
+        except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
+            from edge import __version__
+
+            fail(
+                f"the hub's answer is not one this fleetdaq ({__version__}) reads "
+                f"({type(err).__name__}: {err}); is the hub running the same version?",
+                2,
+            )
+
+    return typing.cast(F, wrapper)
 
 
 def check_tls(config: str | Path, site: SiteConfig, who: str) -> None:

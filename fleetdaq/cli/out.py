@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request
+from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
 
 
 def _request(
@@ -43,6 +43,7 @@ def out() -> None:
 @out.command("list")
 @_common
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
+@reads_hub_answer
 def list_outputs(config: str, connect: tuple[str, ...], as_json: bool) -> None:
     """Every output: kind, limits, safe value, value, readback, armed, interlocks."""
     reply = _request(config, connect, {"action": "list"}, 10.0)
@@ -78,6 +79,7 @@ def list_outputs(config: str, connect: tuple[str, ...], as_json: bool) -> None:
         click.echo("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
 
 
+@reads_hub_answer
 def _command(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> None:
     body = {**body, "user": getpass.getuser(), "host": socket.gethostname()}
     reply = _request(config, connect, body, 30.0)

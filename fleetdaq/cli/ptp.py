@@ -7,7 +7,7 @@ import sys
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, load_site
+from fleetdaq.cli.common import fail, hub_request, load_site, reads_hub_answer
 
 
 @click.group()
@@ -102,6 +102,7 @@ def ptp_status(
     show_default=True,
     help="How long to wait for the hub's answer (s).",
 )
+@reads_hub_answer
 def ptp_fleet(config: str, as_json: bool, connect: tuple[str, ...], timeout: float) -> None:
     """Every node's clock, as the hub sees it. Exit 0 when every node is LOCKED on one
     grandmaster, 1 on warnings (holdover), 2 on failures (or no hub)."""

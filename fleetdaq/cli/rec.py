@@ -14,7 +14,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request
+from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
 from fleetdaq.text import size_text
 
 
@@ -65,6 +65,7 @@ def _common(f: Any) -> Any:
     return f
 
 
+@reads_hub_answer
 def _act(
     config: str,
     connect: tuple[str, ...],

@@ -7,7 +7,7 @@ import json
 
 import click
 
-from fleetdaq.cli.common import hub_request
+from fleetdaq.cli.common import hub_request, reads_hub_answer
 from fleetdaq.text import text_table, when_text
 
 
@@ -15,6 +15,7 @@ from fleetdaq.text import text_table, when_text
 @click.option("--config", "config", required=True, type=click.Path(), help="Site file.")
 @click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
+@reads_hub_answer
 def rules(config: str, connect: tuple[str, ...], as_json: bool) -> None:
     """The hub's rules and interlocks, as they stand."""
     states = hub_request(config, connect, "rules", None)
