@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -423,3 +426,82 @@ def test_batch_extremes_read_a_payloads_own_bytes():
     for a, b in zip(got, want, strict=True):
         assert np.array_equal(a, b)
     assert got[2].tolist() == [False, False, True, False, False, False, False, False]
+
+
+HUB_MACHINES = """\
+site: p
+hub:
+  partitions:
+    bay2: {listen: [tcp/10.0.0.2:7447], nodes: [cell]}
+nodes:
+  wec: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+  cell: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
+alarms:
+  hub_hot: {node: hub, temperature_above_c: 70}
+  hub_disk: {node: hub, disk_free_percent_below: 20}
+  bay2_hot: {node: hub/bay2, temperature_above_c: 70}
+  bay2_memory: {node: hub/bay2, memory_percent_above: 90}
+  bay2_gone: {node: hub/bay2, down_s: 30}
+"""
+
+
+def _machine_health(node: str, temp: float, data_free: int) -> Any:
+    from edge.messages import DiskUsage, HostMetrics, NodeHealth, TimeSyncStatus
+
+    host = HostMetrics(
+        cpu_percent=10.0, load_1m=0.1, load_5m=0.1, load_15m=0.1,
+        memory_total_bytes=1000, memory_available_bytes=50,
+        disks=(DiskUsage("data", "/srv", data_free, 100),), cpu_temperature_c=temp,
+        process_rss_bytes=1, host_uptime_s=1.0,
+    )  # fmt: skip
+    return NodeHealth(
+        time_ns=time.time_ns(), node=node, version="0.1.0", uptime_s=1.0, host=host,
+        streams=(), clock=TimeSyncStatus.unknown(),
+    )  # fmt: skip
+
+
+def test_a_site_may_alarm_on_a_hubs_own_machine_and_a_partition_hubs():
+    """A hub on a buoy overheats like any Pi: `node: hub` (the main hub's machine) and
+    `node: hub/<partition>` watch CPU, memory, temperature and the recording disk."""
+    from hub.alarms.supervisor import _machine, _node_check
+    from hub.read_model import HubView, NodeView
+
+    site = parse_config(HUB_MACHINES, "p.yaml")
+    defs = {d.name: d for d in build_definitions(site)}
+    assert defs["hub_disk"].condition == "hub: recording disk free below 20 %"
+    now = time.time_ns()
+    view = HubView(
+        site="p",
+        time_ns=now,
+        hub_health=_machine_health("hub", 75.0, 10),
+        partition_hubs=(NodeView("hub/bay2", True, _machine_health("hub/bay2", 40.0, 90), now),),
+    )
+
+    def check(name: str) -> tuple[bool, float]:
+        d = defs[name]
+        return _node_check(d, _machine(view, d.node), now)
+
+    assert check("hub_hot") == (True, 75.0)
+    assert check("hub_disk") == (True, 10.0)  # its recording disk ("data"), not a spool
+    assert check("bay2_hot") == (False, 40.0)
+    assert check("bay2_memory") == (True, 95.0)
+    assert check("bay2_gone")[0] is False
+    gone = HubView(site="p", time_ns=now, partition_hubs=(NodeView("hub/bay2", False),))
+    assert _node_check(defs["bay2_gone"], _machine(gone, "hub/bay2"), now)[0] is True
+    assert _node_check(defs["bay2_hot"], _machine(gone, "hub/bay2"), now)[0] is False
+
+
+@pytest.mark.parametrize(
+    ("alarm", "why"),
+    [
+        ("{node: hub, spool_bytes_above: 1000}", "node: hub is a hub's own machine: it may watch"),
+        ("{node: hub, down_s: 5}", "node: hub is a hub's own machine"),
+        ("{node: hub/bay2, clock_unlocked_s: 5}", "node: hub/bay2 is a hub's own machine"),
+        ("{node: hub/bay9, down_s: 5}", "no partition hub 'bay9' (bay2)"),
+        ("{node: hub/bay2/x, down_s: 5}", "alarms.x.node: invalid name 'hub/bay2/x'"),
+    ],
+)
+def test_a_hub_machine_alarm_on_what_a_hub_has_not_is_refused(alarm: str, why: str):
+    text = HUB_MACHINES.split("alarms:", maxsplit=1)[0] + f"alarms:\n  x: {alarm}\n"
+    with pytest.raises(ConfigError, match=re.escape(why)):
+        parse_config(text, "p.yaml")

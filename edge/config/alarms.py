@@ -123,10 +123,21 @@ class StreamAlarm(_Common):
         return self
 
 
-class NodeAlarm(_Common):
-    """A node's health: down, its machine, its spool, its clock."""
+HUB_MACHINE_CHECKS = (
+    "cpu_percent_above",
+    "memory_percent_above",
+    "disk_free_percent_below",
+    "temperature_above_c",
+)
+"""What a node alarm may watch on a hub's own machine (``node: hub``, or a partition hub's,
+``node: hub/<name>``, which may also be `down_s`): a hub has no spool and no clock status."""
 
-    node: Annotated[str, Field(pattern=NAME)]
+
+class NodeAlarm(_Common):
+    """A node's health: down, its machine, its spool, its clock. ``node: hub`` (or a partition
+    hub's ``hub/<name>``) watches a hub's own machine (`HUB_MACHINE_CHECKS`)."""
+
+    node: Annotated[str, Field(pattern=r"^(hub/)?[a-z][a-z0-9_-]{0,62}$")]
     down_s: Annotated[Float, Field(gt=0)] | None = None
     """Not alive (no liveliness token) for this long."""
     cpu_percent_above: Annotated[Float, Field(gt=0, le=100)] | None = None
@@ -158,6 +169,13 @@ class NodeAlarm(_Common):
                 "offset_above_ns",
             ),
         )
+        if self.node == "hub" or self.node.startswith("hub/"):
+            allowed = HUB_MACHINE_CHECKS + (("down_s",) if self.node != "hub" else ())
+            if not any(getattr(self, k) is not None for k in allowed):
+                raise ValueError(
+                    f"node: {self.node} is a hub's own machine: it may watch "
+                    f"{', '.join(allowed)} (a hub has no spool and no clock status)"
+                )
         return self
 
 

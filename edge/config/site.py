@@ -182,8 +182,12 @@ def _unknown_target(site: SiteConfig, spec: Any) -> str | None:
     if target is not None:
         parts = target.split("/")
         node = parts[0]
-    if node is None:
+    if node is None or node == "hub":  # the main hub's own machine
         return None
+    if target is None and node.startswith("hub/"):  # a partition hub's machine
+        name = node.removeprefix("hub/")
+        named = ", ".join(site.hub.partitions) or "none"
+        return None if name in site.hub.partitions else f"no partition hub {name!r} ({named})"
     if node not in site.nodes:
         return f"no node {node!r} (nodes: {', '.join(site.nodes)})"
     if target is None:

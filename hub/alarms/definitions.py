@@ -143,11 +143,13 @@ def _node_alarm(name: str, spec: NodeAlarm) -> AlarmDef:
     for key, (check, text, unit) in _NODE_CHECKS.items():
         value = getattr(spec, key)
         if value is not None:
+            is_hub = spec.node == "hub" or spec.node.startswith("hub/")
+            what = "recording disk free below {:g} %" if check == "disk" and is_hub else text
             return AlarmDef(
                 name=name,
                 kind="node",
                 check=check,
-                condition=f"{spec.node}: " + text.format(value),
+                condition=f"{spec.node}: " + what.format(value),
                 severity=spec.severity,
                 node=spec.node,
                 unit=unit,

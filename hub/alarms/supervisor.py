@@ -23,6 +23,7 @@ from typing import Any
 
 from edge.cdr import encode
 from edge.config.site import SiteConfig
+from edge.keys import HUB
 from edge.messages import ALARM_STATE_TYPE, AlarmState
 from edge.threads import NamedThread
 from edge.wire import batch_values
@@ -34,7 +35,7 @@ from hub.alarms.states import IN_ALARM, AlarmStatus, Change, State
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
 from hub.notification import Notification, Notifier
-from hub.read_model import AlarmView, HubView, ReadModel
+from hub.read_model import AlarmView, HubView, NodeView, ReadModel
 from hub.recorder import Recorder
 
 log = logging.getLogger("fleetdaq.alarms")
@@ -333,43 +334,7 @@ class Supervisor:
                 return backlog > d.threshold, backlog
             return False, math.nan
         if d.kind == "node":
-            node = view.node(d.node)
-            if d.check == "down":
-                return not (node is not None and node.alive), math.nan
-            health = node.health if node is not None else None
-            if health is None or now - health.time_ns > HEALTH_FRESH_NS:
-                return False, math.nan
-            host = health.host
-            if d.check == "cpu":
-                return host.cpu_percent > d.threshold, host.cpu_percent
-            if d.check == "memory":
-                total = host.memory_total_bytes
-                used = 100.0 * (1 - host.memory_available_bytes / total) if total else 0.0
-                return used > d.threshold, used
-            if d.check == "disk":
-                disk = host.disk("spool")
-                if disk is None or not disk.total_bytes:
-                    return False, math.nan
-                free = 100.0 * disk.free_bytes / disk.total_bytes
-                return free < d.threshold, free
-            if d.check == "temperature":
-                temp = host.cpu_temperature_c
-                return bool(temp > d.threshold), temp
-            if d.check == "spool":
-                total_bytes = float(sum(s.spool_bytes for s in health.streams))
-                return total_bytes > d.threshold, total_bytes
-            if d.check == "unacked_age":
-                age = max((s.oldest_unacked_age_s for s in health.streams), default=0.0)
-                return age > d.threshold, age
-            status = health.time_status()
-            if d.check == "clock_unlocked":
-                locked = status is not None and status.state.value == "locked"
-                return not locked, math.nan
-            if d.check == "offset":
-                if status is None or status.offset_ns is None:
-                    return False, math.nan
-                return abs(status.offset_ns) > d.threshold, float(status.offset_ns)
-            return False, math.nan
+            return _node_check(d, _machine(view, d.node), now)
         if d.check.startswith("partition_"):  # a partition hub, as the main hub sees it
             return _partition_check(d, view.partitions.get(d.node.removeprefix("hub/")) or {})
         # the hub
@@ -499,6 +464,58 @@ class Supervisor:
                 out.append((name, True, s.state.value))
         self._publish()
         return out
+
+
+def _node_check(d: AlarmDef, node: NodeView | None, now: int) -> tuple[bool, float]:
+    """A node alarm's condition and value, from the node's (or a hub machine's) last health;
+    nothing to judge (False, NaN) without a fresh one."""
+    if d.check == "down":
+        return not (node is not None and node.alive), math.nan
+    health = node.health if node is not None else None
+    if health is None or now - health.time_ns > HEALTH_FRESH_NS:
+        return False, math.nan
+    host = health.host
+    if d.check == "cpu":
+        return host.cpu_percent > d.threshold, host.cpu_percent
+    if d.check == "memory":
+        total = host.memory_total_bytes
+        used = 100.0 * (1 - host.memory_available_bytes / total) if total else 0.0
+        return used > d.threshold, used
+    if d.check == "disk":  # where a node spools; where a hub records
+        disk = host.disk("data" if d.node.split("/")[0] == HUB else "spool")
+        if disk is None or not disk.total_bytes:
+            return False, math.nan
+        free = 100.0 * disk.free_bytes / disk.total_bytes
+        return free < d.threshold, free
+    if d.check == "temperature":
+        temp = host.cpu_temperature_c
+        return bool(temp > d.threshold), temp
+    if d.check == "spool":
+        total_bytes = float(sum(s.spool_bytes for s in health.streams))
+        return total_bytes > d.threshold, total_bytes
+    if d.check == "unacked_age":
+        age = max((s.oldest_unacked_age_s for s in health.streams), default=0.0)
+        return age > d.threshold, age
+    status = health.time_status()
+    if d.check == "clock_unlocked":
+        locked = status is not None and status.state.value == "locked"
+        return not locked, math.nan
+    if d.check == "offset":
+        if status is None or status.offset_ns is None:
+            return False, math.nan
+        return abs(status.offset_ns) > d.threshold, float(status.offset_ns)
+    return False, math.nan
+
+
+def _machine(view: HubView, node: str) -> NodeView | None:
+    """A node, or a hub's own machine: ``hub`` (this hub's health) or ``hub/<name>`` (a
+    partition hub's, as the main hub last heard it)."""
+    if node == HUB:
+        h = view.hub_health
+        return NodeView(HUB, True, h, h.time_ns) if h is not None else None
+    if node.startswith(HUB + "/"):
+        return next((p for p in view.partition_hubs if p.node == node), None)
+    return view.node(node)
 
 
 def _partition_check(d: AlarmDef, p: dict[str, Any]) -> tuple[bool, float]:
