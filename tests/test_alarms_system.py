@@ -63,6 +63,8 @@ nodes:
       env: {{driver: environment_sim, rate_hz: 4, channels: [{{name: air, unit: degC}}]}}
 alarms:
   substrate_hot: {{channel: am-cell/tc/substrate, above: 400, deadband: 5, latch: true}}
+  # The hub's own machine (any machine uses more than 0.01 % of its memory).
+  hub_memory: {{node: hub, memory_percent_above: 0.01, severity: info}}
 """
 
 
@@ -143,6 +145,9 @@ def test_alarms_pass_through_their_states_and_survive_a_hub_kill(
                  "the sensor fault to be raised")  # fmt: skip
         wait_for(hub, lambda a: state(a, "substrate_hot.fault") == "returned_unacked",
                  "the sensor fault to clear, unacked")  # fmt: skip
+        wait_for(hub, lambda a: state(a, "hub_memory") == "active_unacked",
+                 "the alarm on the hub's own machine")  # fmt: skip
+        assert hub.alarms()["hub_memory"]["value"] > 0.01
         # The unplugged T8 (4 s after start, for 5 s): its stream goes stale, then recovers.
         wait_for(hub, lambda a: state(a, "stream_stale/wec/t8") == "active_unacked",
                  "the unplugged T8's stream to go stale", 40)  # fmt: skip
