@@ -338,3 +338,47 @@ def test_ptp_fleet_says_so_in_one_line_when_it_cannot_read_the_fleet(
     assert r.returncode == 2, r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "the hub's answer is not one this fleetdaq (0.1.0) reads" in r.stderr
+
+
+def test_the_site_file_may_come_from_fleetdaq_config_or_where_ansible_puts_it(
+    stray: tuple[Path, dict[str, bytes]],
+) -> None:
+    """On a site's machine, `fleetdaq status` needs no argument: $FLEETDAQ_CONFIG, else
+    /etc/fleetdaq/site.yaml (where the deployment puts it)."""
+    import os
+
+    from fleetdaq.cli.common import DEFAULT_SITE_FILE
+
+    cfg, answer = stray
+    answer["bytes"] = json.dumps(
+        {"site": "statustest", "recorder": {"state": "recording"}}
+    ).encode()
+    env = {k: v for k, v in os.environ.items() if k != "FLEETDAQ_CONFIG"}
+    for command in (["status"], ["rules"], ["rec", "status"], ["alarms"], ["ptp", "fleet"]):
+        r = subprocess.run(
+            [sys.executable, "-m", "fleetdaq", *command],
+            cwd=REPO,
+            capture_output=True,
+            check=False,
+            text=True,
+            timeout=60,
+            env={**env, "FLEETDAQ_CONFIG": str(cfg)},
+        )
+        assert "--config" not in r.stderr, (command, r.stderr)
+        assert "Traceback" not in r.stderr, (command, r.stderr)
+        if command == ["status"]:
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert "all well" in r.stdout
+        if DEFAULT_SITE_FILE.is_file():  # this host has one: it would be taken
+            continue
+        bare = subprocess.run(
+            [sys.executable, "-m", "fleetdaq", *command],
+            cwd=REPO,
+            capture_output=True,
+            check=False,
+            text=True,
+            timeout=60,
+            env=env,
+        )
+        assert bare.returncode == 2, (command, bare.stdout + bare.stderr)
+        assert "--config" in bare.stderr, (command, bare.stderr)

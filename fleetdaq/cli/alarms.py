@@ -3,6 +3,7 @@ with a reply over Zenoh), and the alarm performance report of a recording."""
 
 from __future__ import annotations
 
+import functools
 import getpass
 import json
 import math
@@ -14,7 +15,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
+from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer, site_option
 from fleetdaq.text import text_table, when_text
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
@@ -58,17 +59,9 @@ def _table(alarms: list[dict[str, Any]], everything: bool) -> str:
     return "\n".join(lines)
 
 
-def _common(f: Any) -> Any:
-    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
-        f
-    )
-    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
-    return f
-
-
 @click.group(invoke_without_command=True)
 @click.pass_context
-@click.option("--config", "config", type=click.Path(), help="Site file.")
+@functools.partial(site_option, required=False)
 @click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
 @click.option("--json", "as_json", is_flag=True, help="Every alarm as JSON.")
 @click.option("--all", "everything", is_flag=True, help="Also the alarms that are normal.")
@@ -84,7 +77,10 @@ def alarms(
     if ctx.invoked_subcommand is not None:
         return
     if config is None:
-        fail("--config: the site file is needed to reach its hub")
+        fail(
+            "--config: the site file is needed to reach its hub (or $FLEETDAQ_CONFIG, or "
+            "/etc/fleetdaq/site.yaml)"
+        )
     reply = _request(config, connect, {"action": "list"})
     if as_json:
         click.echo(json.dumps(reply["alarms"], indent=2))
@@ -125,7 +121,7 @@ def _act(
 
 
 @alarms.command()
-@_common
+@hub_options
 @click.argument("names", nargs=-1)
 @click.option("--all", "every", is_flag=True, help="Every unacked alarm.")
 @click.option("--note", default="", help="Why (goes into the audit and the mails).")
@@ -137,7 +133,7 @@ def ack(
 
 
 @alarms.command()
-@_common
+@hub_options
 @click.argument("names", nargs=-1)
 @click.option("--for", "duration", required=True, help="How long: 90s, 15m, 2h, 1d.")
 @click.option("--note", default="", help="Why (goes into the audit).")
@@ -149,7 +145,7 @@ def shelve(
 
 
 @alarms.command()
-@_common
+@hub_options
 @click.argument("names", nargs=-1)
 @click.option("--all", "every", is_flag=True, help="Every shelved alarm.")
 @click.option("--note", default="")
@@ -161,7 +157,7 @@ def unshelve(
 
 
 @alarms.command()
-@_common
+@hub_options
 @click.argument("names", nargs=-1)
 @click.option("--note", default="", help="Why it is out of service (goes into the audit).")
 def disable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note: str) -> None:
@@ -170,7 +166,7 @@ def disable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note:
 
 
 @alarms.command()
-@_common
+@hub_options
 @click.argument("names", nargs=-1)
 @click.option("--note", default="")
 def enable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note: str) -> None:

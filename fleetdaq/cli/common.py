@@ -44,6 +44,41 @@ def finish(code: int) -> NoReturn:
     os._exit(code)
 
 
+DEFAULT_SITE_FILE = Path("/etc/fleetdaq/site.yaml")
+"""Where a deployed host has the site file (`ansible/`: fleetdaq_site_file)."""
+
+
+def _default_site_file() -> str | None:
+    return str(DEFAULT_SITE_FILE) if DEFAULT_SITE_FILE.is_file() else None
+
+
+def site_option(f: F, required: bool = True) -> F:
+    """``--config`` of a command that asks the hub: else ``$FLEETDAQ_CONFIG``, else
+    /etc/fleetdaq/site.yaml when the host has it (a deployed hub or edge), so `fleetdaq status`
+    on a site's machine needs no argument."""
+    # Looked at when the command's module loads, i.e. as it runs. No `default` at all when
+    # there is none: click (8.5) takes an explicit default=None as a value given.
+    found = _default_site_file()
+    kwargs: dict[str, Any] = {"default": found} if found else {}
+    return click.option(
+        "--config",
+        "config",
+        envvar="FLEETDAQ_CONFIG",
+        required=required,
+        type=click.Path(),
+        help=f"Site file [else $FLEETDAQ_CONFIG, else {DEFAULT_SITE_FILE} when there].",
+        **kwargs,
+    )(f)
+
+
+def hub_options(f: F) -> F:
+    """``--config`` (`site_option`) and ``--connect``: what every command asking the hub takes."""
+    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
+        f
+    )
+    return site_option(f)
+
+
 def load_site(path: str | Path) -> SiteConfig:
     """The validated site file, or one line (file, key path, problem) and exit 2."""
     from edge.config.load import load_config

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
+from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer
 
 
 def _request(
@@ -27,21 +27,13 @@ def _fmt(x: Any) -> str:
     return f"{x:.6g}" if isinstance(x, float) else str(x)
 
 
-def _common(f: Any) -> Any:
-    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
-        f
-    )
-    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
-    return f
-
-
 @click.group()
 def out() -> None:
     """The site's outputs: list, set, pulse, arm, disarm (exit 1 on a refusal, with why)."""
 
 
 @out.command("list")
-@_common
+@hub_options
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
 @reads_hub_answer
 def list_outputs(config: str, connect: tuple[str, ...], as_json: bool) -> None:
@@ -102,7 +94,7 @@ def _command(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> Non
 
 
 @out.command("set")
-@_common
+@hub_options
 @click.argument("output")
 @click.argument("value", type=float)
 @click.option("--reason", default="", help="Why (recorded with the command).")
@@ -114,7 +106,7 @@ def set_output(
 
 
 @out.command()
-@_common
+@hub_options
 @click.argument("output")
 @click.option(
     "--for",
@@ -137,7 +129,7 @@ def pulse(
 
 
 @out.command()
-@_common
+@hub_options
 @click.argument("output")
 @click.option("--reason", default="")
 def arm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:
@@ -146,7 +138,7 @@ def arm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None
 
 
 @out.command()
-@_common
+@hub_options
 @click.argument("output")
 @click.option("--reason", default="")
 def disarm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:

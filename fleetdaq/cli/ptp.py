@@ -7,7 +7,7 @@ import sys
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, load_site, reads_hub_answer
+from fleetdaq.cli.common import fail, hub_options, hub_request, load_site, reads_hub_answer
 
 
 @click.group()
@@ -92,9 +92,8 @@ def ptp_status(
 
 
 @ptp.command("fleet")
-@click.option("--config", "config", required=True, type=click.Path())
+@hub_options
 @click.option("--json", "as_json", is_flag=True, help="Print the fleet view as JSON.")
-@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
 @click.option(
     "--timeout",
     type=click.FloatRange(min=0.5),

@@ -14,7 +14,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, reads_hub_answer
+from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer
 from fleetdaq.text import size_text
 
 
@@ -57,14 +57,6 @@ def _show(reply: dict[str, Any]) -> None:
         click.echo(f"partition    {name}: {line}")
 
 
-def _common(f: Any) -> Any:
-    f = click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")(
-        f
-    )
-    f = click.option("--config", "config", required=True, type=click.Path(), help="Site file.")(f)
-    return f
-
-
 @reads_hub_answer
 def _act(
     config: str,
@@ -99,7 +91,7 @@ def rec() -> None:
 
 def _action(name: str, doc: str) -> None:
     @rec.command(name, help=doc)
-    @_common
+    @hub_options
     @click.option("--note", default="", help="Why (in the event and the snapshot's metadata).")
     @click.option("--json", "as_json", is_flag=True, help="The hub's whole answer as JSON.")
     @click.option(

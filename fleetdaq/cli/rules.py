@@ -7,13 +7,12 @@ import json
 
 import click
 
-from fleetdaq.cli.common import hub_request, reads_hub_answer
+from fleetdaq.cli.common import hub_options, hub_request, reads_hub_answer
 from fleetdaq.text import text_table, when_text
 
 
 @click.command()
-@click.option("--config", "config", required=True, type=click.Path(), help="Site file.")
-@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@hub_options
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON.")
 @reads_hub_answer
 def rules(config: str, connect: tuple[str, ...], as_json: bool) -> None:

@@ -21,7 +21,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_request, load_site
+from fleetdaq.cli.common import fail, hub_options, hub_request, load_site
 from fleetdaq.text import duration_text, size_text, text_table, when_text
 
 IN_ALARM = frozenset({"active_unacked", "active_acked", "returned_unacked"})
@@ -234,8 +234,7 @@ def render(view: dict[str, Any], what: str) -> tuple[list[str], list[str]]:
 
 
 @click.command()
-@click.option("--config", "config", required=True, type=click.Path(), help="Site file.")
-@click.option("--connect", multiple=True, help="Hub endpoint(s), overriding the site file.")
+@hub_options
 @click.option("--partition", default=None, help="Ask this partition hub (its slice) instead.")
 @click.option("--json", "as_json", is_flag=True, help="The hub's whole status answer as JSON.")
 @click.option(
