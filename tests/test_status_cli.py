@@ -116,6 +116,8 @@ def test_status_of_a_running_site_then_a_node_gone_then_no_hub(tmp_path: Path) -
             assert "needs attention (2):" in down.stdout
             assert "node wec: not alive" in down.stdout
             assert "alarm node_down/wec: active_unacked (critical)" in down.stdout
+            assert "last warnings and errors:" in down.stdout
+            assert "WARNING  hub/hub [node_gone]: wec: gone" in down.stdout
             wec = next(line for line in down.stdout.splitlines() if line.startswith("wec "))
             assert " NO " in wec
         assert hub.terminate() == 0, hub.output()[-3000:]
@@ -181,6 +183,12 @@ HOSTILE: dict[str, Any] = {
     "failures": [["a"], "b", ["svc", "\x1b[31mdied"]],
     "alarms": [{"state": "active_unacked", "name": "\x1b]52;c;AAAA\x07x", "value": "NaN"}, 4],
     "fleet": {"grandmasters": "abc", "max_abs_offset_ns": {}},
+    "recent_events": [
+        {"level": 40, "node": "\x1b[2J", "source": "x", "tag": 5, "message": "\x1b]0;t\x07m"},
+        {"level": "high", "time_ns": "now"},
+        3,
+        {"level": 1e300, "message": ["x"]},
+    ],
 }
 
 
@@ -196,6 +204,7 @@ def test_a_hostile_answer_is_shown_without_escapes_or_a_crash(
     assert "\x07" not in r.stdout
     assert "service svc failed: ?[31mdied" in r.stdout
     assert "partition hub p?[1m: gone" in r.stdout
+    assert "ERROR    ?[2J/x [5]: ?]0;t?m" in r.stdout
 
 
 @pytest.mark.parametrize(

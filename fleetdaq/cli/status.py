@@ -1,7 +1,8 @@
 """``fleetdaq status``: the whole site on one terminal screen, from any machine that reaches the
 hub (the hub's ``status`` request): every node (alive, version, uptime, CPU, memory, disk,
 temperature, clock, spool), every stream (rate against configured, batches, gaps, lost, data
-age), the recorder, the partition hubs, the alarms in alarm, and what needs attention.
+age), the recorder, the partition hubs, the alarms in alarm, the last warnings and errors, and
+what needs attention.
 
 Exit 0 when nothing needs attention, 1 when something does (a node down, an alarm in alarm, the
 recorder not recording, a failed service, a partition hub gone), 2 when no hub answers: usable
@@ -185,6 +186,25 @@ def _alarms(view: dict[str, Any]) -> list[str]:
     return text_table(rows)
 
 
+_LEVELS = {10: "DEBUG", 20: "INFO", 30: "WARNING", 40: "ERROR", 50: "CRITICAL"}
+
+
+def _events(view: dict[str, Any], count: int) -> list[str]:
+    """The last `count` warnings and errors of the hub's recent events, oldest first."""
+    shown = [e for e in _dicts(view.get("recent_events")) if (_num(e.get("level")) or 0) >= 30]
+    if count <= 0 or not shown:
+        return []
+    lines = ["last warnings and errors:"]
+    for e in shown[-count:]:
+        level = _LEVELS.get(int(_num(e.get("level")) or 0), "?")
+        tag = f" [{_t(e.get('tag'))}]" if e.get("tag") else ""
+        lines.append(
+            f"  {when_text(int(_num(e.get('time_ns')) or 0))} {level:8} "
+            f"{_t(e.get('node'))}/{_t(e.get('source'))}{tag}: {_t(e.get('message'))[:300]}"
+        )
+    return [*lines, ""]
+
+
 def attention(view: dict[str, Any]) -> list[str]:
     """What a person should look at, one line each (empty: all well)."""
     out = []
@@ -209,8 +229,9 @@ def attention(view: dict[str, Any]) -> list[str]:
     return out
 
 
-def render(view: dict[str, Any], what: str) -> tuple[list[str], list[str]]:
-    """The screen for one status answer, and what needs attention."""
+def render(view: dict[str, Any], what: str, events: int = 5) -> tuple[list[str], list[str]]:
+    """The screen for one status answer (with its last `events` warnings and errors), and
+    what needs attention."""
     now = int(_num(view.get("time_ns")) or time.time_ns())
     lines = [f"{what} · site {_t(view.get('site', '?'))} · {when_text(now)}"]
     lines.append(f"recorder: {_recorder(_dict(view.get('recorder')))}")
@@ -224,6 +245,7 @@ def render(view: dict[str, Any], what: str) -> tuple[list[str], list[str]]:
             line += f" · disk {100 * free / total:.0f} % free"
         lines.append(f"partition {_t(name)}: {line}")
     lines += ["", *_nodes(view, now), "", *_streams(view, now), "", *_alarms(view), ""]
+    lines += _events(view, events)
     todo = attention(view)
     if todo:
         lines.append(f"needs attention ({len(todo)}):")
@@ -238,6 +260,14 @@ def render(view: dict[str, Any], what: str) -> tuple[list[str], list[str]]:
 @click.option("--partition", default=None, help="Ask this partition hub (its slice) instead.")
 @click.option("--json", "as_json", is_flag=True, help="The hub's whole status answer as JSON.")
 @click.option(
+    "--events",
+    "events",
+    type=click.IntRange(min=0, max=50),
+    default=5,
+    show_default=True,
+    help="How many of the hub's last warnings and errors to show.",
+)
+@click.option(
     "--watch",
     type=click.FloatRange(min=0.5),
     default=None,
@@ -250,6 +280,7 @@ def status(
     connect: tuple[str, ...],
     partition: str | None,
     as_json: bool,
+    events: int,
     watch: float | None,
 ) -> None:
     """The site at a glance: nodes, streams, recorder, alarms, and what needs attention
@@ -279,7 +310,7 @@ def status(
                 click.echo(json.dumps(view, indent=2))
                 todo = attention(view)
             else:
-                lines, todo = render(view, title)
+                lines, todo = render(view, title, events)
                 if watch is not None:
                     click.clear()
                 click.echo("\n".join(lines))
