@@ -757,6 +757,14 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         r = ann("rec", "status", "--partition", "bay2", "--json")
         assert r.returncode == 0, r.stdout + r.stderr
         assert len(json.loads(r.stdout)["recorder"]["files"]) == 1
+        # The site at a glance, with the operator's certificate: the main hub's and bay2's own.
+        r = ann("status")
+        assert r.returncode in (0, 1), r.stdout + r.stderr  # 1: the host's disk nearly full
+        assert re.search(r"^hub/bay2 +yes +0\.1\.0 ", r.stdout, re.M), r.stdout
+        r = ann("status", "--partition", "bay2")
+        assert r.returncode in (0, 1), r.stdout + r.stderr
+        assert r.stdout.startswith("partition hub bay2 · site sparts"), r.stdout
+        assert re.search(r"^cell-a/\w+ +- ", r.stdout, re.M), r.stdout  # its own slice
         main_log = tmp_path / "main" / "events.log"
         wait_logged(
             main_log,
