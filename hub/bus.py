@@ -187,6 +187,14 @@ class EventBus:
         """Raise a hub event."""
         self.publish(make_event(time.time_ns(), self.node, level, source, tag, message, **fields))
 
+    def emit_counted(
+        self, count: int, level: int, source: str, tag: str, message: str, /, **fields: object
+    ) -> None:
+        """The event of the `count`-th of a repeated problem (a payload refused, ...): raised
+        for the first, then every 1000th (`worth_telling`), saying how many so far."""
+        if worth_telling(count):
+            self.emit(level, source, tag, f"{message}; {count} so far", count=count, **fields)
+
     def stop(self) -> None:
         """Deliver what is queued, then stop every subscriber thread. Idempotent."""
         with self._lock:

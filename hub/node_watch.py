@@ -24,7 +24,7 @@ from edge.errors import WireError
 from edge.keys import Kind, SiteKeys
 from edge.messages import NODE_HEALTH_TYPE, Event, NodeHealth
 from edge.wire import plausible_time
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.read_model import NodeView, ReadModel
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
@@ -158,15 +158,14 @@ class NodeWatch:
             self._malformed[node] = n
             malformed = tuple(sorted(self._malformed.items()))
         self.model.put("malformed", malformed)
-        if worth_telling(n):
-            self.bus.emit(
-                logging.WARNING,
-                "hub",
-                "malformed",
-                f"{node}: refused a {what} payload that is not valid ({err}); {n} so far",
-                node=node,
-                count=n,
-            )
+        self.bus.emit_counted(
+            n,
+            logging.WARNING,
+            "hub",
+            "malformed",
+            f"{node}: refused a {what} payload that is not valid ({err})",
+            node=node,
+        )
 
     def _on_alive(self, sample: Any) -> None:
         node = self._node_of(sample, Kind.ALIVE, "a liveliness token")

@@ -36,7 +36,7 @@ from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.wire import BatchDecoder, SampleFormat
 from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.foxglove.service import FoxgloveLive
 from hub.live_plots import LivePlots
 from hub.router import Router
@@ -161,17 +161,16 @@ class PartitionLive:
                         raise WireError(f"payload says {h.node}/{h.stream}")
                 except (WireError, ValueError, TypeError) as err:  # whatever the bytes were
                     self.malformed += 1
-                    if worth_telling(self.malformed):
-                        self.bus.emit(
-                            logging.WARNING,
-                            "partition-live",
-                            "malformed",
-                            f"live view of {r.node}/{r.stream}: dropped a payload that is not "
-                            f"a valid batch of this stream ({err}); {self.malformed} so far",
-                            node=r.node,
-                            stream=r.stream,
-                            count=self.malformed,
-                        )
+                    self.bus.emit_counted(
+                        self.malformed,
+                        logging.WARNING,
+                        "partition-live",
+                        "malformed",
+                        f"live view of {r.node}/{r.stream}: dropped a payload that is not "
+                        f"a valid batch of this stream ({err})",
+                        node=r.node,
+                        stream=r.stream,
+                    )
                     return
                 # A replay (the partition's edge catching up) is older than what was drawn.
                 late = r.last_sequence is not None and h.sequence <= r.last_sequence

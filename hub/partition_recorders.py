@@ -27,7 +27,7 @@ from typing import Any
 
 from edge.keys import SiteKeys
 from edge.threads import NamedThread
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.requests import json_object
 from hub.router import Router
 
@@ -150,15 +150,15 @@ class PartitionRecorders:
                 return parse_answer(reply.ok.payload.to_bytes())
             except ValueError as err:
                 self.malformed += 1
-                if worth_telling(self.malformed):
-                    self.bus.emit(
-                        logging.WARNING,
-                        "hub",
-                        "malformed",
-                        f"partition hub {name}: refused an answer to a recorder request that "
-                        f"is not one ({err}); {self.malformed} so far",
-                        partition=name,
-                    )
+                self.bus.emit_counted(
+                    self.malformed,
+                    logging.WARNING,
+                    "hub",
+                    "malformed",
+                    f"partition hub {name}: refused an answer to a recorder request that "
+                    f"is not one ({err})",
+                    partition=name,
+                )
                 return {"ok": False, "result": "", "error": f"its answer is not valid ({err})"}
         return {
             "ok": False,

@@ -22,7 +22,7 @@ import logging
 from typing import Any
 
 from edge.keys import SiteKeys
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.requests import json_object
 from hub.router import Router
 from hub.snapshots import SnapshotBuffer
@@ -111,14 +111,13 @@ class PartitionSnapshots:
             trigger = parse_trigger(sample.payload.to_bytes())
         except ValueError as err:
             self.malformed += 1
-            if worth_telling(self.malformed):
-                self.bus.emit(
-                    logging.WARNING,
-                    "snapshots",
-                    "malformed_trigger",
-                    f"refused a snapshot trigger that is not one ({err}); {self.malformed} so far",
-                    count=self.malformed,
-                )
+            self.bus.emit_counted(
+                self.malformed,
+                logging.WARNING,
+                "snapshots",
+                "malformed_trigger",
+                f"refused a snapshot trigger that is not one ({err})",
+            )
             return
         self.taken += 1
         self.snapshots.remote(trigger)

@@ -19,7 +19,7 @@ from edge.config.site import SiteConfig
 from edge.errors import WireError
 from edge.keys import SiteKeys
 from edge.messages import Event, NodeHealth
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus
 from hub.node_watch import MAX_PAYLOAD_BYTES
 from hub.partition import partition_event_node, partition_key
 from hub.read_model import (
@@ -165,15 +165,14 @@ class PartitionWatch:
 
     def _refused(self, name: str, what: str, why: str) -> None:
         self.malformed += 1
-        if worth_telling(self.malformed):
-            self.bus.emit(
-                logging.WARNING,
-                "hub",
-                "malformed",
-                f"partition hub {name}: refused {what}, which is not valid ({why}); "
-                f"{self.malformed} so far",
-                partition=name,
-            )
+        self.bus.emit_counted(
+            self.malformed,
+            logging.WARNING,
+            "hub",
+            "malformed",
+            f"partition hub {name}: refused {what}, which is not valid ({why})",
+            partition=name,
+        )
 
     def _on_event(self, sample: Any) -> None:
         name = self._partition_of(sample, "events")

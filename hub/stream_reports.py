@@ -23,17 +23,16 @@ class StreamReports:
 
     def malformed(self, st: StreamStats, err: WireError) -> None:
         st.malformed += 1
-        if worth_telling(st.malformed):
-            self.bus.emit(
-                logging.WARNING,
-                "recorder",
-                "malformed",
-                f"{st.node}/{st.stream}: refused a payload that is not a valid batch of this "
-                f"stream ({err}); {st.malformed} so far",
-                node=st.node,
-                stream=st.stream,
-                count=st.malformed,
-            )
+        self.bus.emit_counted(
+            st.malformed,
+            logging.WARNING,
+            "recorder",
+            "malformed",
+            f"{st.node}/{st.stream}: refused a payload that is not a valid batch of this "
+            f"stream ({err})",
+            node=st.node,
+            stream=st.stream,
+        )
 
     def late_start(self, st: StreamStats, sequence: int) -> None:
         self.bus.emit(

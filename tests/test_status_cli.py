@@ -44,15 +44,21 @@ nodes:
 """
 
 
-def status(cfg: Path, *args: str) -> subprocess.CompletedProcess[str]:
+def fleetdaq(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """The command line, as a person runs it."""
     return subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "status", "--config", str(cfg), *args],
+        [sys.executable, "-m", "fleetdaq", *args],
         cwd=REPO,
         capture_output=True,
         check=False,
         text=True,
         timeout=60,
+        env=env,
     )
+
+
+def status(cfg: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return fleetdaq("status", "--config", str(cfg), *args)
 
 
 def test_status_of_a_running_site_then_a_node_gone_then_no_hub(tmp_path: Path) -> None:
@@ -317,14 +323,7 @@ def test_every_command_reading_a_hub_answer_says_so_in_one_line_when_it_cannot(
     """What a hub of another fleetdaq version (or not a hub) answers: one line, exit 2."""
     cfg, answer = stray
     answer["bytes"] = payload
-    r = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", *command, "--config", str(cfg)],
-        cwd=REPO,
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=60,
-    )
+    r = fleetdaq(*command, "--config", str(cfg))
     assert "Traceback" not in r.stderr, r.stderr
     assert r.returncode == 2, r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -336,14 +335,7 @@ def test_ptp_fleet_says_so_in_one_line_when_it_cannot_read_the_fleet(
 ) -> None:
     cfg, answer = stray
     answer["bytes"] = b'{"fleet": {"nodes": 5}, "nodes": []}'
-    r = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "ptp", "fleet", "--config", str(cfg)],
-        cwd=REPO,
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=60,
-    )
+    r = fleetdaq("ptp", "fleet", "--config", str(cfg))
     assert r.returncode == 2, r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "the hub's answer is not one this fleetdaq (0.1.0) reads" in r.stderr
@@ -364,15 +356,7 @@ def test_the_site_file_may_come_from_fleetdaq_config_or_where_ansible_puts_it(
     ).encode()
     env = {k: v for k, v in os.environ.items() if k != "FLEETDAQ_CONFIG"}
     for command in (["status"], ["rules"], ["rec", "status"], ["alarms"], ["ptp", "fleet"]):
-        r = subprocess.run(
-            [sys.executable, "-m", "fleetdaq", *command],
-            cwd=REPO,
-            capture_output=True,
-            check=False,
-            text=True,
-            timeout=60,
-            env={**env, "FLEETDAQ_CONFIG": str(cfg)},
-        )
+        r = fleetdaq(*command, env={**env, "FLEETDAQ_CONFIG": str(cfg)})
         assert "--config" not in r.stderr, (command, r.stderr)
         assert "Traceback" not in r.stderr, (command, r.stderr)
         if command == ["status"]:
@@ -380,14 +364,6 @@ def test_the_site_file_may_come_from_fleetdaq_config_or_where_ansible_puts_it(
             assert "all well" in r.stdout
         if DEFAULT_SITE_FILE.is_file():  # this host has one: it would be taken
             continue
-        bare = subprocess.run(
-            [sys.executable, "-m", "fleetdaq", *command],
-            cwd=REPO,
-            capture_output=True,
-            check=False,
-            text=True,
-            timeout=60,
-            env=env,
-        )
+        bare = fleetdaq(*command, env=env)
         assert bare.returncode == 2, (command, bare.stdout + bare.stderr)
         assert "--config" in bare.stderr, (command, bare.stderr)
