@@ -129,10 +129,8 @@ def _nodes(view: dict[str, Any], now_ns: int) -> list[str]:
 
 def _streams(view: dict[str, Any], now_ns: int) -> list[str]:
     rows = [("stream", "hub", "scans/s", "configured", "batches", "gaps", "lost", "age")]
-    for s in sorted(
-        (_dict(s) for s in _list(view.get("streams"))),
-        key=lambda s: (str(s.get("node")), str(s.get("stream"))),
-    ):
+    streams = _dicts(view.get("streams"))
+    for s in sorted(streams, key=lambda s: (str(s.get("node")), str(s.get("stream")))):
         rate = _num(s.get("scan_rate"))
         want = _num(s.get("rate_hz"))
         last = _num(s.get("last_receive_ns"))
