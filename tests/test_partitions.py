@@ -291,6 +291,9 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
         assert p.terminate() == 0
     assert bay2.terminate() == 0
     assert main.terminate() == 0
+    gone = _status_screen(rig)  # no main hub: it says where else to ask
+    assert gone.returncode == 2, gone.stdout + gone.stderr
+    assert "each partition hub answers for its own slice: --partition bay2" in gone.stderr
 
     # Each hub holds exactly its slice, without a gap, across both runs of bay2.
     main_rec = _recorded(rig.tmp / "main")

@@ -134,10 +134,14 @@ def setup_logging(verbose: bool) -> None:
 
 
 def open_client(
-    endpoints: list[str], timeout_ms: int = 3000, site: SiteConfig | None = None
+    endpoints: list[str],
+    timeout_ms: int = 3000,
+    site: SiteConfig | None = None,
+    also: str = "",
 ) -> Any:
-    """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable.
-    With the site's `security.tls`, the operator's certificate (`edge.security.operator_tls`)."""
+    """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable
+    (`also` ends it). With the site's `security.tls`, the operator's certificate
+    (`edge.security.operator_tls`)."""
     import zenoh
 
     from edge.zenoh_session import client_config
@@ -155,7 +159,7 @@ def open_client(
     except zenoh.ZError as err:
         hint = " (is your certificate from this site's CA?)" if tls is not None else ""
         why = str(err).split(" at /", 1)[0]  # not the Rust source file it was raised in
-        fail(f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}", 2)
+        fail(f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}{also}", 2)
 
 
 def operator_key(site: SiteConfig, what: str) -> str:
@@ -191,7 +195,14 @@ def hub_request(
         fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
     own = site.hub.partitions[partition].listen if partition is not None else site.hub.listen
     endpoints = list(connect) or list(own)
-    session = open_client(endpoints, site=site)
+    # The main hub down: its partition hubs still answer for their own slices.
+    also = (
+        f"; each partition hub answers for its own slice: --partition "
+        f"{' | '.join(site.hub.partitions)}"
+        if partition is None and site.hub.partitions
+        else ""
+    )
+    session = open_client(endpoints, site=site, also=also)
     payload = json.dumps(body).encode() if body is not None else None
     try:
         try:
@@ -214,7 +225,7 @@ def hub_request(
         if site.security.tls
         else "is it running?"
     )
-    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why})", 2)
+    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why}){also}", 2)
 
 
 def reads_hub_answer(f: F) -> F:
