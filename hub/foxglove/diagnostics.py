@@ -226,16 +226,24 @@ def _stream(
         s.problem(WARN, f"{n}: {st.read_errors} read errors")
 
 
+def _hub_machine(
+    s: _Status, h: NodeHealth | None, received_ns: int, now_ns: int, none: str, what: str
+) -> None:
+    """A hub's own machine (its health, received at `received_ns`): stale or missing said
+    (`none`, "`what` is N s old"), else its software and host with the recording disk."""
+    if h is None:
+        s.problem(STALE, none)
+        return
+    if now_ns - received_ns > HEALTH_STALE_NS:
+        s.problem(STALE, f"{what} is {(now_ns - received_ns) / 1e9:.0f} s old")
+    _software(s, h)
+    _host(s, h.host, "data")
+
+
 def hub_status(view: HubView, now_ns: int) -> dict[str, Any]:
     s = _Status("fleetdaq/hub", "hub")
     h = view.hub_health
-    if h is None:
-        s.problem(STALE, "no hub health yet")
-    else:
-        if now_ns - h.time_ns > HEALTH_STALE_NS:
-            s.problem(STALE, f"hub health is {(now_ns - h.time_ns) / 1e9:.0f} s old")
-        _software(s, h)
-        _host(s, h.host, "data")
+    _hub_machine(s, h, h.time_ns if h is not None else 0, now_ns, "no hub health yet", "hub health")
     r = view.recorder
     s.value("recorder", r.state)
     s.value("session", r.session or "none")
@@ -261,16 +269,11 @@ def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> dict[str,
     """A partition hub (``hub/<name>``): its machine, from its own health, and its recorder,
     from its report."""
     s = _Status(f"fleetdaq/{hub.node}", hub.node)
-    h = hub.health
     if not hub.alive:
         s.problem(ERROR, "gone (its nodes spool until it returns)")
-    if h is None:
-        s.problem(STALE, "no health from it yet")
-    else:
-        if now_ns - hub.health_received_ns > HEALTH_STALE_NS:
-            s.problem(STALE, f"its health is {(now_ns - hub.health_received_ns) / 1e9:.0f} s old")
-        _software(s, h)
-        _host(s, h.host, "data")
+    _hub_machine(
+        s, hub.health, hub.health_received_ns, now_ns, "no health from it yet", "its health"
+    )
     r = (view.partitions.get(hub.node.removeprefix("hub/")) or {}).get("recorder") or {}
     s.value("recorder", r.get("state", "no report yet"))
     s.value("session", r.get("session") or "none")
