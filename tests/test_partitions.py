@@ -289,11 +289,30 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
 
     for p in edges.values():
         assert p.terminate() == 0
-    assert bay2.terminate() == 0
     assert main.terminate() == 0
-    gone = _status_screen(rig)  # no main hub: it says where else to ask
+    # No main hub: `fleetdaq status` says so (exit 2) and shows what bay2 answers for its slice.
+    gone = _status_screen(rig)
     assert gone.returncode == 2, gone.stdout + gone.stderr
-    assert "each partition hub answers for its own slice: --partition bay2" in gone.stderr
+    assert "cannot reach the hub" in gone.stderr, gone.stderr
+    assert "the main hub does not answer; each partition hub" in gone.stdout, gone.stdout
+    assert "partition hub bay2 · site" in gone.stdout, gone.stdout
+    assert "recorder: recording" in gone.stdout, gone.stdout
+    for node in BAY2_SLICE:
+        assert f"{node}/wave" in gone.stdout, gone.stdout
+    for node in MAIN_SLICE:
+        assert f"{node}/wave" not in gone.stdout, gone.stdout  # the main hub's slice: unknown
+    as_json = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "status", "--json", "--config", str(rig.cfg)],
+        cwd=REPO, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert as_json.returncode == 2, as_json.stderr
+    answer = json.loads(as_json.stdout)
+    assert "cannot reach the hub" in answer["error"]
+    assert answer["partitions"]["bay2"]["recorder"]["state"] == "recording"
+    assert bay2.terminate() == 0
+    gone = _status_screen(rig)  # nobody at all: each hub's reason, still exit 2
+    assert gone.returncode == 2, gone.stdout + gone.stderr
+    assert "partition hub bay2: no answer either (cannot reach the hub" in gone.stdout, gone.stdout
 
     # Each hub holds exactly its slice, without a gap, across both runs of bay2.
     main_rec = _recorded(rig.tmp / "main")

@@ -133,6 +133,10 @@ def setup_logging(verbose: bool) -> None:
     )
 
 
+class NoAnswer(Exception):
+    """No hub answered, or what answered is not a fleetdaq hub: the one line saying why."""
+
+
 def open_client(
     endpoints: list[str],
     timeout_ms: int = 3000,
@@ -142,6 +146,14 @@ def open_client(
     """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable
     (`also` ends it). With the site's `security.tls`, the operator's certificate
     (`edge.security.operator_tls`)."""
+    try:
+        return _open(endpoints, timeout_ms, site, also)
+    except NoAnswer as err:
+        fail(str(err), 2)
+
+
+def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: str) -> Any:
+    """`open_client`, raising `NoAnswer` instead of exiting."""
     import zenoh
 
     from edge.zenoh_session import client_config
@@ -153,13 +165,17 @@ def open_client(
         try:
             tls = operator_tls(Path(site.security.pki_dir))
         except SecretFileError as err:
-            fail(f"security.tls is on, but {err} (set FLEETDAQ_CERT and FLEETDAQ_KEY)", 2)
+            raise NoAnswer(
+                f"security.tls is on, but {err} (set FLEETDAQ_CERT and FLEETDAQ_KEY)"
+            ) from None
     try:
         return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms, tls=tls))
     except zenoh.ZError as err:
         hint = " (is your certificate from this site's CA?)" if tls is not None else ""
         why = str(err).split(" at /", 1)[0]  # not the Rust source file it was raised in
-        fail(f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}{also}", 2)
+        raise NoAnswer(
+            f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}{also}"
+        ) from None
 
 
 def operator_key(site: SiteConfig, what: str) -> str:
@@ -187,6 +203,23 @@ def hub_request(
 ) -> dict[str, Any]:
     """Ask the hub's ``fleetdaq/<site>/hub/<what>`` (a JSON request, a JSON reply); one line and
     exit 2 when no hub answers. With `partition`, through that partition hub's router."""
+    try:
+        return ask_hub(config, connect, what, body, timeout, partition)
+    except NoAnswer as err:
+        fail(str(err), 2)
+
+
+def ask_hub(
+    config: str,
+    connect: tuple[str, ...],
+    what: str,
+    body: dict[str, Any] | None,
+    timeout: float = 10.0,
+    partition: str | None = None,
+    name_partitions: bool = True,
+) -> dict[str, Any]:
+    """`hub_request`, raising `NoAnswer` instead of exiting. When the main hub of a partitioned
+    site does not answer, the line names its partition hubs (unless not `name_partitions`)."""
     import json
 
     site = load_site(config)
@@ -199,24 +232,28 @@ def hub_request(
     also = (
         f"; each partition hub answers for its own slice: --partition "
         f"{' | '.join(site.hub.partitions)}"
-        if partition is None and site.hub.partitions
+        if partition is None and site.hub.partitions and name_partitions
         else ""
     )
-    session = open_client(endpoints, site=site, also=also)
+    session = _open(endpoints, 3000, site, also)
     payload = json.dumps(body).encode() if body is not None else None
     try:
         try:
             key = operator_key(site, what)
         except ValueError as err:  # SecretFileError, PkiError: which file, and why
-            fail(f"security.tls is on, but {err}", 2)
+            raise NoAnswer(f"security.tls is on, but {err}") from None
         for reply in session.get(key, payload=payload, timeout=timeout):
             if reply.ok is not None:
                 try:
                     out = json.loads(reply.ok.payload.to_bytes())
                 except ValueError as err:
-                    fail(f"the answer on {key} is not JSON ({err}): is that a fleetdaq hub?", 2)
+                    raise NoAnswer(
+                        f"the answer on {key} is not JSON ({err}): is that a fleetdaq hub?"
+                    ) from None
                 if not isinstance(out, dict):
-                    fail(f"the answer on {key} is not a JSON object: is that a fleetdaq hub?", 2)
+                    raise NoAnswer(
+                        f"the answer on {key} is not a JSON object: is that a fleetdaq hub?"
+                    )
                 return out
     finally:
         session.close()
@@ -225,7 +262,7 @@ def hub_request(
         if site.security.tls
         else "is it running?"
     )
-    fail(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why}){also}", 2)
+    raise NoAnswer(f"no hub answered at {', '.join(endpoints)} within {timeout:g} s ({why}){also}")
 
 
 def reads_hub_answer(f: F) -> F:

@@ -6,7 +6,9 @@ what needs attention.
 
 Exit 0 when nothing needs attention, 1 when something does (a node down, an alarm in alarm, the
 recorder not recording, a failed service, a partition hub gone), 2 when no hub answers: usable
-from a script or a monitoring check as well as by a person over SSH.
+from a script or a monitoring check as well as by a person over SSH. When the main hub of a
+partitioned site does not answer, each partition hub is asked for its own slice and shown (still
+exit 2).
 
 The answer comes from the network: every value is read defensively, and text is printed with
 control characters replaced, so a stray answer on the key can neither crash this command nor
@@ -22,7 +24,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_options, hub_request, load_site
+from fleetdaq.cli.common import NoAnswer, ask_hub, fail, hub_options, load_site
 from fleetdaq.text import duration_text, size_text, text_table, when_text
 
 IN_ALARM = frozenset({"active_unacked", "active_acked", "returned_unacked"})
@@ -289,17 +291,25 @@ def status(
     if partition is not None and partition not in site.hub.partitions:
         named = ", ".join(site.hub.partitions) or "none"
         fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+    # The main hub of a partitioned site silent: each partition hub is asked for its slice.
+    fallback = list(site.hub.partitions) if partition is None else []
     try:
         while True:
             try:
-                view = hub_request(config, connect, what, None, partition=partition)
+                view = ask_hub(config, connect, what, None, partition=partition,
+                               name_partitions=not fallback)  # fmt: skip
                 if "recorder" not in view:
-                    fail(
+                    raise NoAnswer(
                         f"the hub's status answer is not one this fleetdaq reads: {_t(view)[:200]}"
                     )
-            except SystemExit:
+            except NoAnswer as err:
+                if watch is not None:
+                    click.clear()
+                click.echo(_t(err), err=True)
+                if fallback:
+                    _partitions_instead(config, fallback, as_json, events, str(err))
                 if watch is None:
-                    raise
+                    sys.exit(2)
                 # Watching: the hub may be restarting; say so under its reason, and ask again.
                 click.echo(f"no answer at {when_text(time.time_ns())}; asking again in {watch:g} s")
                 time.sleep(watch)
@@ -317,3 +327,38 @@ def status(
             time.sleep(watch)
     except KeyboardInterrupt:
         sys.exit(0)
+
+
+PARTITION_TIMEOUT_S = 5.0
+"""How long each partition hub is given when the main hub does not answer."""
+
+
+def _partitions_instead(
+    config: str, names: list[str], as_json: bool, events: int, main_error: str
+) -> None:
+    """The main hub did not answer: print each partition hub's own slice (it records and
+    supervises its nodes on its own), or why it did not answer either. Each is asked through
+    its own router (its `listen`), never the main hub's."""
+    answers: dict[str, dict[str, Any]] = {}
+    for name in names:
+        try:
+            view = ask_hub(config, (), f"partition/{name}/status", None,
+                           timeout=PARTITION_TIMEOUT_S, partition=name)  # fmt: skip
+            if "recorder" not in view:
+                raise NoAnswer(
+                    f"its status answer is not one this fleetdaq reads: {_t(view)[:200]}"
+                )
+            answers[name] = view
+        except NoAnswer as err:
+            answers[name] = {"error": str(err)}
+    if as_json:
+        click.echo(json.dumps({"error": main_error, "partitions": answers}, indent=2))
+        return
+    lines = ["the main hub does not answer; each partition hub, for its own slice:", ""]
+    for name, view in answers.items():
+        if "error" in view and "recorder" not in view:
+            lines += [f"partition hub {_t(name)}: no answer either ({_t(view['error'])})", ""]
+            continue
+        screen, _ = render(view, f"partition hub {name}", events)
+        lines += [*screen, ""]
+    click.echo("\n".join(lines).rstrip())
