@@ -367,3 +367,48 @@ def test_the_site_file_may_come_from_fleetdaq_config_or_where_ansible_puts_it(
         bare = fleetdaq(*command, env=env)
         assert bare.returncode == 2, (command, bare.stdout + bare.stderr)
         assert "--config" in bare.stderr, (command, bare.stderr)
+
+
+PARTITIONED_SITE = """\
+site: statustest
+hub:
+  listen: [tcp/127.0.0.1:{main}]
+  partitions:
+    bay2: {{listen: ["tcp/127.0.0.1:{bay2}"], nodes: [cell]}}
+    bay3: {{listen: ["tcp/127.0.0.1:{bay3}"], nodes: [dock]}}
+nodes:
+  wec: {{streams: {{t8: {{driver: wave_sim, rate_hz: 100, channels: [{{name: heave}}]}}}}}}
+  cell: {{streams: {{t8: {{driver: wave_sim, rate_hz: 100, channels: [{{name: heave}}]}}}}}}
+  dock: {{streams: {{t8: {{driver: wave_sim, rate_hz: 100, channels: [{{name: heave}}]}}}}}}
+"""
+
+
+def test_with_the_main_hub_silent_each_partition_hub_is_asked_for_its_slice(
+    stray: tuple[Path, dict[str, bytes]], tmp_path: Path
+) -> None:
+    """The main hub's port dead: bay2's (here the stray router, answering hostile text) is
+    shown, read as defensively as the main hub's; bay3 (dead too) is one line; exit 2."""
+    cfg, answer = stray
+    port = int(cfg.read_text().split("tcp/127.0.0.1:", 1)[1].split("]", 1)[0])
+    site = tmp_path / "parts.yaml"
+    site.write_text(PARTITIONED_SITE.format(main=free_port(), bay2=port, bay3=free_port()))
+    answer["bytes"] = json.dumps(HOSTILE).encode()
+    r = status(site)
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.startswith("cannot reach the hub at tcp/127.0.0.1:"), r.stderr
+    assert "--partition" not in r.stderr  # it asks them itself
+    assert "the main hub does not answer; each partition hub, for its own slice:" in r.stdout
+    assert "partition hub bay2 · site ?[2Jstatustest" in r.stdout, r.stdout
+    assert "service svc failed: ?[31mdied" in r.stdout
+    assert "\x1b" not in r.stdout
+    assert "\x07" not in r.stdout
+    assert "partition hub bay3: no answer either (cannot reach the hub at" in r.stdout, r.stdout
+
+    answer["bytes"] = b'{"site": "statustest"}'  # an answer, but not a status
+    r = status(site, "--json")
+    assert r.returncode == 2, r.stdout + r.stderr
+    out = json.loads(r.stdout)
+    assert out["error"].startswith("cannot reach the hub at")
+    assert "not one this fleetdaq reads" in out["partitions"]["bay2"]["error"]
+    assert out["partitions"]["bay3"]["error"].startswith("cannot reach the hub at")
