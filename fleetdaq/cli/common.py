@@ -90,6 +90,13 @@ def load_site(path: str | Path) -> SiteConfig:
         fail(str(err))
 
 
+def check_partition(site: SiteConfig, config: str | Path, partition: str | None) -> None:
+    """``--partition NAME``: one of the site's partitions, or one line naming them and exit 2."""
+    if partition is not None and partition not in site.hub.partitions:
+        named = ", ".join(site.hub.partitions) or "none"
+        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+
+
 def stop_on_signals(hangup: bool = False) -> threading.Event:
     """An event set by SIGINT or SIGTERM (and SIGHUP with `hangup`: its terminal closed): each
     stops a process cleanly."""
@@ -223,9 +230,7 @@ def ask_hub(
     import json
 
     site = load_site(config)
-    if partition is not None and partition not in site.hub.partitions:
-        named = ", ".join(site.hub.partitions) or "none"
-        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+    check_partition(site, config, partition)
     own = site.hub.partitions[partition].listen if partition is not None else site.hub.listen
     endpoints = list(connect) or list(own)
     # The main hub down: its partition hubs still answer for their own slices.

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from fleetdaq.cli.common import (
+    check_partition,
     check_tls,
     fail,
     finish,
@@ -67,9 +68,7 @@ def hub(
                 check_endpoint(endpoint)
             except ValueError as err:
                 fail(f"--listen: {err}")
-    if partition is not None and partition not in site.hub.partitions:
-        named = ", ".join(site.hub.partitions) or "none"
-        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+    check_partition(site, config, partition)
     setup_logging(verbose)
     from hub.errors import HubError, RouterError, SecretError
     from hub.partition import PartitionRuntime

@@ -24,7 +24,7 @@ from typing import Any
 
 import click
 
-from fleetdaq.cli.common import NoAnswer, ask_hub, fail, hub_options, load_site
+from fleetdaq.cli.common import NoAnswer, ask_hub, check_partition, hub_options, load_site
 from fleetdaq.text import duration_text, size_text, text_table, when_text
 
 IN_ALARM = frozenset({"active_unacked", "active_acked", "returned_unacked"})
@@ -288,9 +288,7 @@ def status(
     what = f"partition/{partition}/status" if partition is not None else "status"
     title = f"partition hub {partition}" if partition is not None else "hub"
     site = load_site(config)  # a bad file or partition name ends even a watch, at once
-    if partition is not None and partition not in site.hub.partitions:
-        named = ", ".join(site.hub.partitions) or "none"
-        fail(f"--partition: {config} has no partition {partition!r} in hub.partitions ({named})")
+    check_partition(site, config, partition)
     # The main hub of a partitioned site silent: each partition hub is asked for its slice.
     fallback = list(site.hub.partitions) if partition is None else []
     try:
