@@ -12,6 +12,8 @@ from pathlib import Path
 
 OPERATOR_CN_PREFIX = "operator:"
 """An operator's certificate CN is ``operator:NAME`` (a node's is the node's name)."""
+PARTITION_CN_PREFIX = "hub:"
+"""A partition hub's certificate CN is ``hub:NAME`` (the main hub's is ``hub``)."""
 
 
 class SecretFileError(ValueError):
@@ -68,8 +70,19 @@ class TlsFiles:
         return self
 
 
-def hub_tls(pki_dir: Path) -> TlsFiles:
-    return TlsFiles(pki_dir / "ca.crt", pki_dir / "hub.crt", pki_dir / "hub.key").check("the hub")
+def hub_tls(pki_dir: Path, partition: str | None = None) -> TlsFiles:
+    """The main hub's pair (``hub.crt``), or partition hub P's own (``partitions/P.crt``)."""
+    if partition is None:
+        stem, who = pki_dir / "hub", "the hub"
+    else:
+        stem, who = pki_dir / "partitions" / partition, f"partition hub {partition}"
+    files = TlsFiles(pki_dir / "ca.crt", stem.with_suffix(".crt"), stem.with_suffix(".key"))
+    if partition is not None and not files.cert.is_file():
+        raise SecretFileError(
+            f"{who}'s certificate {files.cert}: no such file (a partition hub has its own pair: "
+            f"fleetdaq pki issue {partition} --partition --config SITE_FILE)"
+        )
+    return files.check(who)
 
 
 def node_tls(pki_dir: Path, node: str) -> TlsFiles:

@@ -6,6 +6,7 @@ Layout of a PKI folder (keys 0600, the folder 0700)::
 
     ca.crt  ca.key                    the site CA (keep ca.key off the fleet: only `issue` needs it)
     hub.crt hub.key                   the hub's router (server and client: routers mesh)
+    partitions/<name>.crt  .key       one per partition hub's router (CN ``hub:<name>``)
     nodes/<node>.crt  .key            one per edge
     operators/<name>.crt  .key        one per person using the CLI
 
@@ -31,7 +32,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from edge.keys import HUB
-from edge.security import OPERATOR_CN_PREFIX, check_private_file
+from edge.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX, check_private_file
 
 Role = Literal["view", "control"]
 NAME = re.compile(r"^[a-z][a-z0-9_-]{0,62}$")
@@ -207,6 +208,20 @@ def issue_node(folder: Path, node: str, days: int = LEAF_DAYS, force: bool = Fal
     return _leaf(folder, node, folder / "nodes" / node, days, force)
 
 
+def issue_partition(
+    folder: Path, name: str, hub_names: list[str], days: int = LEAF_DAYS, force: bool = False
+) -> Issued:
+    """Partition hub `name`'s router pair (CN ``hub:NAME``): a server for its nodes (valid for
+    `hub_names`, the names and addresses they and the other hubs connect to) and a client of
+    the routers it meshes with. The access control list grants it its own nodes' keys only."""
+    if not NAME.match(name):
+        raise PkiError(f"{name!r} is not a partition name (lowercase letters, digits, '-', '_')")
+    if not hub_names:
+        raise PkiError(f"partition hub {name}: no host name or address to make it valid for")
+    stem = folder / "partitions" / name
+    return _leaf(folder, PARTITION_CN_PREFIX + name, stem, days, force, server_names=hub_names)
+
+
 def issue_operator(
     folder: Path, name: str, role: Role = "view", days: int = LEAF_DAYS, force: bool = False
 ) -> Issued:
@@ -232,7 +247,12 @@ def listing(folder: Path) -> list[CertInfo]:
     """Every certificate in the folder, checked against its CA."""
     ca = x509.load_pem_x509_certificate((folder / "ca.crt").read_bytes())
     out = []
-    found = [folder / "hub.crt", *folder.glob("nodes/*.crt"), *folder.glob("operators/*.crt")]
+    found = [
+        folder / "hub.crt",
+        *folder.glob("partitions/*.crt"),
+        *folder.glob("nodes/*.crt"),
+        *folder.glob("operators/*.crt"),
+    ]
     for p in sorted(found):
         if not p.exists():
             continue

@@ -11,13 +11,24 @@ itself and is not filtered.
 |                       | takes NAME from the key as the user: the certificate says who asked); |
 |                       | the view role: status, rules, alarms, outputs and recorder requests,  |
 |                       | the hub refusing every action; control: all of them                   |
-| another hub (``hub``, | anything under the site's keys (a partitioned site only: the routers  |
-| the site's hub pair)  | of its hubs mesh, and each trusts the others as itself)               |
+| the main hub (``hub``) | anything under the site's keys (on a partition hub's router: the main |
+|                       | hub supervises, commands and asks every hub, as trusted as the router)|
+| partition hub P       | speak for its own nodes and itself: their data, health, events and    |
+| (``hub:P``)           | liveliness, answer commands to their outputs and requests to          |
+|                       | ``hub/partition/P/**``, publish under ``hub/partition/P/**``; hear the |
+|                       | main hub's heartbeat and snapshot triggers (its nodes and it need     |
+|                       | them); be told what the main hub subscribes to and asked what it asks |
 | anyone else           | nothing                                                               |
 
 A node cannot publish another's data, forge its acks or its liveliness, command an output, or
-query the hub; an operator cannot publish anything. Rules that must hold for the messages the
-router forwards to a client (egress) are granted only on the client's own keys.
+query the hub; an operator cannot publish anything; a partition hub cannot do what it could not
+do for its own nodes, so its key (on a machine at the far end of a link, say) cannot ack,
+command or speak for the rest of the site. Rules that must hold for the messages the router
+forwards to a client (egress) are granted only on the client's own keys.
+
+The same list serves every router of a partitioned site. The price of a partition hub's narrow
+rights: a router passes another hub's messages on only when they are that hub's own, so when
+the link between two hubs breaks, their traffic does not detour through a third.
 """
 
 from __future__ import annotations
@@ -26,7 +37,7 @@ from typing import Any
 
 from edge.config.site import SiteConfig
 from edge.keys import HUB, SiteKeys
-from edge.security import OPERATOR_CN_PREFIX
+from edge.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX
 
 OPERATOR_SERVICES = (
     "status",
@@ -107,12 +118,17 @@ def access_control(site: SiteConfig) -> dict[str, Any]:
         subjects.append({"id": sid, "cert_common_names": [OPERATOR_CN_PREFIX + name]})
         policies.append({"rules": [rid, rid + "-answered"], "subjects": [sid]})
     if site.hub.partitions:
-        # The links between the hubs' routers: each hub is the site's, as trusted as the router
-        # itself (it relays its nodes' messages, asks and answers the others' services).
-        rules.append(_rule("hubs", ["ingress", "egress"], EVERY_MESSAGE, [keys.prefix + "/**"]))
-        # The hub pair's common name (`fleetdaq pki init`): every hub of the site serves with it.
-        subjects.append({"id": "hubs", "cert_common_names": [HUB]})
-        policies.append({"rules": ["hubs"], "subjects": ["hubs"]})
+        # The main hub (the hub pair, `fleetdaq pki init`) on a partition hub's router: as
+        # trusted as the router itself (it supervises, commands and asks every hub).
+        rules.append(_rule("hub", ["ingress", "egress"], EVERY_MESSAGE, [keys.prefix + "/**"]))
+        subjects.append({"id": "hub", "cert_common_names": [HUB]})
+        policies.append({"rules": ["hub"], "subjects": ["hub"]})
+        for name in site.hub.partitions:
+            granted = _partition_rules(site, keys, name)
+            rules += granted
+            sid = f"partition:{name}"
+            subjects.append({"id": sid, "cert_common_names": [PARTITION_CN_PREFIX + name]})
+            policies.append({"rules": [r["id"] for r in granted], "subjects": [sid]})
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -120,3 +136,33 @@ def access_control(site: SiteConfig) -> dict[str, Any]:
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _partition_rules(site: SiteConfig, keys: SiteKeys, name: str) -> list[dict[str, Any]]:
+    """Partition hub `name`'s link (`fleetdaq pki issue NAME --partition`): what it and its
+    nodes send the main hub, and what the main hub sends them."""
+    nodes = site.nodes_of(name)
+    own = keys.hub(f"partition/{name}") + "/**"  # report, health, events, alive, requests
+    speaks = [own] + [k for n in nodes for k in (keys.data(n, "*"), keys.health(n), keys.events(n))]
+    alive = [own] + [keys.alive(n) for n in nodes]
+    answers = [own] + [keys.outs_of(n) for n in nodes]
+    hears = [keys.hub("heartbeat"), keys.hub("snapshot/trigger")]
+    rid = f"partition:{name}"
+    return [
+        _rule(rid + ":publish", ["ingress"], ["put", "delete"], speaks),
+        _rule(rid + ":alive", ["ingress"], ["liveliness_token"], alive),
+        # The main hub's commands to its nodes' outputs and requests to it: asked, answered.
+        _rule(rid + ":answer", ["ingress"], ["declare_queryable", "reply"], answers),
+        _rule(rid + ":asked", ["egress"], ["query"], answers),
+        # The heartbeat its nodes' dead-man hears and the snapshot triggers it follows.
+        _rule(rid + ":hear", ["ingress"], ["declare_subscriber"], hears),
+        _rule(rid + ":heard", ["egress"], ["put"], hears),
+        # What the main hub subscribes to, so the partition's router sends it its nodes'
+        # messages: the declarations are wildcards over the site, each checked whole.
+        _rule(
+            rid + ":told",
+            ["egress"],
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            [keys.everything],
+        ),
+    ]

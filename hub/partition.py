@@ -212,7 +212,9 @@ class PartitionRuntime:
         self.model = ReadModel(site.site)
         self.bus = EventBus(node=partition_event_node(partition))
         self.refused = RefusedKeys(self.bus, self.model)
-        self.router = Router(self.listen, site, connect=site.mesh_connect(partition))
+        self.router = Router(
+            self.listen, site, connect=site.mesh_connect(partition), partition=partition
+        )
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(
             self.router,

@@ -27,12 +27,19 @@ class Router:
     name = "router"
 
     def __init__(
-        self, listen: list[str], site: SiteConfig | None = None, connect: list[str] | None = None
+        self,
+        listen: list[str],
+        site: SiteConfig | None = None,
+        connect: list[str] | None = None,
+        partition: str | None = None,
     ) -> None:
-        """`connect`: the routers of the other hubs to mesh with (`SiteConfig.mesh_connect`)."""
+        """`connect`: the routers of the other hubs to mesh with (`SiteConfig.mesh_connect`);
+        `partition`: the partition hub this router serves (its own certificate), or None for
+        the main hub."""
         self.listen = listen
         self.site = site
         self.connect = connect or []
+        self.partition = partition
         self._session: Any = None
 
     @property
@@ -45,7 +52,7 @@ class Router:
         tls = acl = None
         if self.site is not None and self.site.security.tls:
             try:
-                tls = hub_tls(Path(self.site.security.pki_dir))
+                tls = hub_tls(Path(self.site.security.pki_dir), self.partition)
             except SecretFileError as err:
                 raise RouterError(f"security.tls is on, but {err}") from None
             acl = access_control(self.site)

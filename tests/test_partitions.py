@@ -16,13 +16,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
+from edge.cdr import encode
 from edge.config.load import load_config
 from edge.keys import SiteKeys
+from edge.messages import OutputCommand, make_event
+from edge.wire import BatchEncoder, encode_u64
 from hub.partition import partition_key
 from hub.status import query_status
+from ptp.quality import UNSYNCED
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_until
 
 REPO = Path(__file__).resolve().parent.parent
@@ -707,28 +712,30 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
     sees bay2's node and stream; an operator's split reaches bay2 through the main hub, and
     `--partition` asks bay2 directly; a node's certificate can neither ask bay2's recorder nor
     put a report in bay2's name. A command to bay2's node crosses the mesh, and is applied
-    (the node hears the main hub's heartbeat across it)."""
+    (the node hears the main hub's heartbeat across it). bay2's own pair (CN ``hub:bay2``) is
+    all its router has, and on the main hub's router that key speaks for bay2's slice only: it
+    cannot publish a main-hub node's data, events or liveliness, ack its stream, beat the
+    heartbeat, command its output or ask the main hub's services."""
     import os
 
     import zenoh
 
     from edge.security import TlsFiles
     from edge.zenoh_session import client_config
-    from fleetdaq.pki import init, issue_node, issue_operator
+    from fleetdaq.pki import init, issue_node, issue_operator, issue_partition
 
     pki = tmp_path / "pki"
     init(pki, "sparts", ["127.0.0.1"])
     for node in ("wec-a", "cell-a"):
         issue_node(pki, node)
     issue_operator(pki, "ann", "control")
+    issue_partition(pki, "bay2", ["127.0.0.1"])
     main_port, bay2_port = free_port(), free_port()
-    nodes = (
-        "".join(
-            NODE.format(name=n)
-            + f"    connect: [tls/127.0.0.1:{main_port if n == 'wec-a' else bay2_port}]\n"
-            for n in ("wec-a", "cell-a")
-        )
+    nodes = "".join(
+        NODE.format(name=n)
+        + f"    connect: [tls/127.0.0.1:{bay2_port if n == 'cell-a' else main_port}]\n"
         + "    outputs:\n      lamp: {driver: pcf8574, address: 0x20, pin: 1, safe: 0, sim: {}}\n"
+        for n in ("wec-a", "cell-a", "wec-z")  # wec-z: a main-hub node that never starts
     )
     cfg = tmp_path / "site.yaml"
     cfg.write_text(SECURE_SITE.format(pki=pki, main=main_port, bay2=bay2_port, nodes=nodes))
@@ -812,6 +819,54 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         finally:
             s.close()
         assert status()["partitions"]["bay2"]["recorder"]["state"] == "recording"
+
+        # bay2's own key on the main hub's router: bay2's slice, nothing of the main hub's.
+        def wec_a() -> dict[str, Any]:
+            r = ann("status", "--json")
+            assert r.returncode in (0, 1), r.stdout + r.stderr
+            view = json.loads(r.stdout)
+            stream = stream_view(view, "wec-a", "wave")
+            assert stream is not None
+            return stream
+
+        before = wec_a()
+        bay2_key = TlsFiles(
+            pki / "ca.crt", pki / "partitions" / "bay2.crt", pki / "partitions" / "bay2.key"
+        )
+        s = zenoh.open(client_config([f"tls/127.0.0.1:{main_port}"], tls=bay2_key))
+        try:
+            keys = SiteKeys("sparts")
+            enc = BatchEncoder("wec-a", "wave", ("c0", "c1"), ("V", "V"))
+            for i in range(20):  # wec-a's data, far ahead in sequence
+                batch = enc.encode(10**9 + i, time.time_ns(), 1e3, np.full((100, 2), 7.0), UNSYNCED)
+                s.put(keys.data("wec-a", "wave"), bytes(batch), attachment=encode_u64(0))
+            s.put(keys.ack("wec-a", "wave"), encode_u64(10**12))  # an ack wec-a never earned
+            s.put(keys.hub("heartbeat"), b"\x00" * 16)
+            s.put(
+                keys.events("wec-a"),
+                encode(make_event(time.time_ns(), "wec-a", 50, "x", "forged", "forged")),
+            )
+            token = s.liveliness().declare_token(keys.alive("wec-z"))  # a main-hub node, off
+            cmd = OutputCommand(
+                "f1", "lamp", "set", 1.0, 0.0, "operator", "bay2", "", time.time_ns(), 0.0
+            )
+            for key in (keys.out("wec-a", "lamp"), keys.out("cell-a", "lamp")):
+                asked = [r for r in s.get(key, payload=encode(cmd), timeout=3) if r.ok]
+                assert asked == [], f"{key}: a partition hub's key cannot command"
+            body = json.dumps({"action": "stop", "user": "ann"}).encode()
+            for key in (keys.hub("recorder/by/ann"), keys.hub("status/by/ann")):
+                assert [r for r in s.get(key, payload=body, timeout=3) if r.ok] == [], key
+            token.undeclare()
+        finally:
+            s.close()
+        after = wec_a()
+        assert after["last_sequence"] < 10**9, "the forged batches never reached the recorder"
+        assert after["malformed"] == before["malformed"]
+        r = ann("status", "--json")
+        view = json.loads(r.stdout)
+        assert any(n["node"] == "wec-z" for n in view["nodes"])
+        assert not node_alive(view, "wec-z"), "no token in another node's name"
+        assert status()["recorder"]["state"] == "recording", "the recorder was not stopped"
         for p in procs:
             assert p.terminate(30) == 0, p.output()[-3000:]
     finally:
@@ -820,6 +875,8 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
     events = main_log.read_text()
     assert "refused a report" not in events, "the forged report never reached the main hub"
     assert "mallory" not in events
+    for tag in ("ack_refused", "heartbeat_refused", "[forged]"):
+        assert tag not in events, f"{tag}: a forgery with bay2's key reached a main-hub node"
     assert len([d for d in (tmp_path / "bay2").iterdir() if d.name[:1].isdigit()]) == 1
 
 

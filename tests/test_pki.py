@@ -130,3 +130,92 @@ def test_the_acl_grants_each_node_its_own_keys_only(tmp_path: Path):
         (subject,) = policy["subjects"]
         name = subject.split(":", 1)[1]
         assert all(rid.startswith(f"{name}:") or rid.startswith(subject) for rid in policy["rules"])
+
+
+PARTITIONED = """\
+site: parts
+security: {{tls: true, pki_dir: {pki}}}
+hub:
+  listen: [tls/10.0.0.1:7447]
+  partitions:
+    bay2: {{listen: ["tls/bay2.lan:7447", "tls/0.0.0.0:7448"], nodes: ["cell-*"]}}
+nodes:
+  wec: {{streams: {{t8: {{driver: wave_sim, rate_hz: 100, channels: [{{name: heave}}]}}}}}}
+  cell-a:
+    streams: {{t: {{driver: wave_sim, rate_hz: 100, channels: [{{name: temp}}]}}}}
+    outputs: {{lamp: {{driver: pcf8574, address: 0x20, pin: 1, safe: 0, sim: {{}}}}}}
+"""
+
+
+def test_a_partition_hub_gets_its_own_pair_and_rights_over_its_own_nodes_only(tmp_path: Path):
+    """`pki issue NAME --partition`: CN ``hub:NAME``, server and client, valid for the hosts
+    of its listen; the ACL grants that name bay2's keys only; a partition hub without its
+    pair stops at start with one line saying how to make it."""
+    import json
+
+    d = tmp_path / "pki"
+    site = tmp_path / "site.yaml"
+    site.write_text(PARTITIONED.format(pki=d))
+    assert pki("init", "--dir", str(d), "--config", str(site)).returncode == 0
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--partition", "bay2"],
+        cwd=REPO, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "fleetdaq pki issue bay2 --partition" in r.stderr
+
+    r = pki("issue", "bay2", "--partition", "--dir", str(d), "--config", str(site))
+    assert r.returncode == 0, r.stderr
+    c = cert(d / "partitions" / "bay2.crt")
+    c.verify_directly_issued_by(cert(d / "ca.crt"))
+    assert cn(c) == "hub:bay2"
+    usage = c.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+    assert {ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH} <= set(usage)
+    san = c.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.DNSName) == ["bay2.lan", "localhost"]
+    assert san.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("127.0.0.1")]
+    check_private_file(d / "partitions" / "bay2.key")
+    assert "hub:bay2" in pki("list", "--dir", str(d)).stdout
+    r = pki("issue", "bay2", "--partition", "--dir", str(d), "--hub-name", "10.0.0.2", "--force")
+    assert r.returncode == 0, r.stderr
+    san = cert(d / "partitions" / "bay2.crt").extensions.get_extension_for_class(
+        x509.SubjectAlternativeName
+    )
+    assert san.value.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("10.0.0.2")]
+
+    for args, why in (
+        (
+            ("bay9", "--partition", "--config", str(site)),
+            "no partition 'bay9' (hub.partitions: bay2)",
+        ),
+        (("bay3", "--partition"), "give --config SITE_FILE or --hub-name HOST"),
+        (("wec", "--hub-name", "x"), "--hub-name is for a partition hub's pair"),
+        (("ann", "--partition", "--operator", "--hub-name", "x"), "not both"),
+    ):
+        r = pki("issue", *args, "--dir", str(d))
+        assert r.returncode == 2, args
+        assert why in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+    acl = json.loads(pki("acl", "--config", str(site)).stdout)
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert subjects["partition:bay2"] == ["hub:bay2"]
+    assert subjects["hub"] == ["hub"]
+    rules = {x["id"]: x for x in acl["rules"]}
+    (policy,) = [p for p in acl["policies"] if p["subjects"] == ["partition:bay2"]]
+    granted = [rules[rid] for rid in policy["rules"]]
+    mine = ("fleetdaq/parts/cell-a/", "fleetdaq/parts/hub/partition/bay2/")
+    hears = ("fleetdaq/parts/hub/heartbeat", "fleetdaq/parts/hub/snapshot/trigger")
+    for rule in granted:
+        declarations = {"declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"}
+        if rule["flows"] == ["egress"] and set(rule["messages"]) <= declarations:
+            continue  # what the main hub subscribes to: told to bay2's router
+        for key in rule["key_exprs"]:
+            assert key.startswith(mine) or key in hears, (rule["id"], key)
+        if set(rule["key_exprs"]) & set(hears):
+            assert rule["messages"] in (["declare_subscriber"], ["put"]), rule
+            assert rule["messages"] == ["put"] or rule["flows"] == ["ingress"], rule
+    # The main hub's node is no part of it: not its data, acks, outputs or liveliness.
+    assert not any("/wec/" in k for r in granted for k in r["key_exprs"])
+    assert not any("/ack/" in k for r in granted for k in r["key_exprs"])

@@ -292,9 +292,10 @@ def reads_hub_answer(f: F) -> F:
     return typing.cast(F, wrapper)
 
 
-def check_tls(config: str | Path, site: SiteConfig, who: str) -> None:
-    """With `security.tls` on, the files `who` (``hub``, a node's name, ``operator``) needs:
-    missing, or a key others may read -> one line and exit 2."""
+def check_tls(config: str | Path, site: SiteConfig, who: str, partition: str | None = None) -> None:
+    """With `security.tls` on, the files `who` (``hub``, a node's name, ``operator``) needs
+    (the hub: partition hub `partition`'s own pair when given): missing, or a key others may
+    read -> one line and exit 2."""
     if not site.security.tls:
         return
     from edge.security import SecretFileError, hub_tls, node_tls, operator_tls
@@ -302,7 +303,7 @@ def check_tls(config: str | Path, site: SiteConfig, who: str) -> None:
     pki = Path(site.security.pki_dir)
     try:
         if who == "hub":
-            hub_tls(pki)
+            hub_tls(pki, partition)
         elif who == "operator":
             operator_tls(pki)
         else:

@@ -74,7 +74,7 @@ def hub(
     from hub.partition import PartitionRuntime
     from hub.runtime import HubRuntime
 
-    check_tls(config, site, "hub")
+    check_tls(config, site, "hub", partition)
     data = Path(data_dir) if data_dir else None
     runtime: HubRuntime | PartitionRuntime = (
         HubRuntime(site, data, list(listen) or None)

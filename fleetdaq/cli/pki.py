@@ -1,5 +1,6 @@
 """``fleetdaq pki``: the site's certificates — `init` (the site CA and the hub's router
-certificate), `issue NODE` and `issue --operator NAME --role view|control`, `list`."""
+certificate), `issue NODE`, `issue NAME --partition` (a partition hub's router) and
+`issue --operator NAME --role view|control`, `list`."""
 
 from __future__ import annotations
 
@@ -69,6 +70,18 @@ def init(
 @click.argument("name")
 @click.option("--operator", is_flag=True, help="NAME is a person using the CLI, not a node.")
 @click.option(
+    "--partition",
+    is_flag=True,
+    help="NAME is a partition hub of the site file's hub.partitions: its router's own pair.",
+)
+@click.option(
+    "--hub-name",
+    "hub_names",
+    multiple=True,
+    help="With --partition: a host name or address its nodes and the other hubs reach it by "
+    "(repeat; default: the hosts of its listen in --config, localhost, 127.0.0.1).",
+)
+@click.option(
     "--role",
     type=click.Choice(["view", "control"]),
     default="view",
@@ -82,17 +95,26 @@ def issue(
     folder: Path,
     name: str,
     operator: bool,
+    partition: bool,
+    hub_names: tuple[str, ...],
     role: str,
     config: str | None,
     days: int,
     force: bool,
 ) -> None:
-    """Issue a certificate for a node (CN = its name) or an operator."""
+    """Issue a certificate for a node (CN = its name), a partition hub or an operator."""
     from edge.security import SecretFileError
-    from fleetdaq.pki import PkiError, issue_node, issue_operator
+    from fleetdaq.pki import PkiError, issue_node, issue_operator, issue_partition
 
+    if operator and partition:
+        fail("pki issue: NAME is an operator or a partition hub, not both", 2)
+    if hub_names and not partition:
+        fail("pki issue: --hub-name is for a partition hub's pair (--partition)", 2)
     try:
-        if operator:
+        if partition:
+            names = list(hub_names) or _partition_hosts(config, name)
+            made = issue_partition(folder, name, names, days, force)
+        elif operator:
             made = issue_operator(folder, name, role, days, force)  # type: ignore[arg-type]
         else:
             if config and name not in load_site(config).nodes:
@@ -105,6 +127,31 @@ def issue(
         click.echo(
             f"Add to the site file: security: {{operators: {{{name}: {role}}}}}; restart the hub."
         )
+    if partition:
+        click.echo(f"Copy it, the key and ca.crt to partition hub {name}'s machine only.")
+
+
+def _partition_hosts(config: str | None, name: str) -> list[str]:
+    """The hosts a partition hub is reached by: those of its `listen` (not a wildcard
+    address), then localhost and 127.0.0.1."""
+    if not config:
+        fail(f"pki issue {name} --partition: give --config SITE_FILE or --hub-name HOST", 2)
+    site = load_site(config)
+    part = site.hub.partitions.get(name)
+    if part is None:
+        known = ", ".join(site.hub.partitions) or "none"
+        fail(
+            f"pki issue: the site file {config} has no partition {name!r} "
+            f"(hub.partitions: {known})",
+            2,
+        )
+    hosts = []
+    for endpoint in part.listen:
+        address = endpoint.split("#", 1)[0].split("?", 1)[0].split("/", 1)[-1]
+        host = address.rsplit(":", 1)[0].strip("[]")
+        if host not in ("0.0.0.0", "::", "") and host not in hosts:
+            hosts.append(host)
+    return hosts + [h for h in ("localhost", "127.0.0.1") if h not in hosts]
 
 
 @pki.command("list")

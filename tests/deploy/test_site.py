@@ -6,7 +6,8 @@ these hosts, so the plays that start services and the health gate are off there 
 switches off ``fleetdaq_manage_services``, and with it the health gate).
 
 Checked: the first run installs fleetdaq, the site file, the certificates (owners, modes, each
-host only its own pair, never the CA's key), the units and linuxptp's configurations; a second
+host only its own pair, never the CA's key; the partition hub bay2's own pair, never the main
+hub's), the units and linuxptp's configurations; a second
 run changes nothing (PLAY RECAP); every unit it wrote passes ``systemd-analyze verify`` with
 nothing printed; an inventory that does not fit the site file stops the run before any host
 is touched."""
@@ -34,7 +35,9 @@ SITE = """\
 # Rendered by site.yml as a template: the edges connect to the hub's inventory address.
 site: deploytest
 hub:
-  listen: [tls/0.0.0.0:7447]
+  listen: ["tls/{{ hostvars['controller'].ansible_host }}:7447"]
+  partitions:
+    bay2: {listen: ["tls/{{ hostvars['bay2'].ansible_host }}:7447"], nodes: [shore]}
 security:
   tls: true
   pki_dir: /etc/fleetdaq/pki
@@ -45,7 +48,7 @@ nodes:
     streams:
       env: {driver: environment_sim, rate_hz: 1, channels: [{name: air, unit: degC}]}
   shore:
-    connect: ["tls/{{ hostvars[groups['hub'][0]].ansible_host }}:7447"]
+    connect: ["tls/{{ hostvars['bay2'].ansible_host }}:7447"]
     streams:
       env: {driver: environment_sim, rate_hz: 1, channels: [{name: air, unit: degC}]}
 """
@@ -102,7 +105,9 @@ def ansible_env(root: Path) -> dict[str, str]:
     return env
 
 
-def write_inventory(lab: Lab, root: Path, wheelhouse: Path, path: Path, **edge_nodes: str) -> Path:
+def write_inventory(
+    lab: Lab, root: Path, wheelhouse: Path, path: Path, partition: str = "bay2", **edge_nodes: str
+) -> Path:
     known_hosts = root / "known_hosts"
     known_hosts.write_text("".join(h.known_hosts_line() + "\n" for h in lab.hosts))
 
@@ -114,7 +119,7 @@ def write_inventory(lab: Lab, root: Path, wheelhouse: Path, path: Path, **edge_n
             **extra,
         }
 
-    hub, *edges = lab.hosts
+    hub, bay2, *edges = lab.hosts
     doc = {
         "all": {
             "vars": {
@@ -137,7 +142,12 @@ def write_inventory(lab: Lab, root: Path, wheelhouse: Path, path: Path, **edge_n
                 "fleetdaq_hub_extras": [],
             },
             "children": {
-                "hub": {"hosts": {hub.name: host(hub)}},
+                "hub": {
+                    "hosts": {
+                        hub.name: host(hub),
+                        bay2.name: host(bay2, fleetdaq_partition=partition),
+                    }
+                },
                 "ptp_grandmaster": {
                     "hosts": {
                         hub.name: {
@@ -178,7 +188,8 @@ def deploy(tmp_path_factory: pytest.TempPathFactory, wheelhouse: Path) -> Iterat
     fleetdaq("pki", "init", "--site", "deploytest", "--hub-name", "10.233.0.10", "--dir", str(pki))
     for node in ("wec", "shore"):
         fleetdaq("pki", "issue", node, "--dir", str(pki))
-    lab = Lab(root / "hosts", ["controller", "wec", "shore-pi"])
+    fleetdaq("pki", "issue", "bay2", "--partition", "--hub-name", "10.233.0.11", "--dir", str(pki))
+    lab = Lab(root / "hosts", ["controller", "bay2", "wec", "shore-pi"])
     try:
         inventory = write_inventory(
             lab, root, wheelhouse, root / "inventory.yml", **{"shore-pi": "shore"}
@@ -194,7 +205,7 @@ def test_the_first_run_deploys_every_host_from_the_wheelhouse(deploy: Deploy):
     out = deploy.first.stdout
     assert deploy.first.returncode == 0, out[-6000:] + deploy.first.stderr[-3000:]
     counts = recap(out)
-    assert set(counts) == {"controller", "wec", "shore-pi"}
+    assert set(counts) == {"controller", "bay2", "wec", "shore-pi"}
     for name, c in counts.items():
         assert c["failed"] == 0, name
         assert c["unreachable"] == 0, name
@@ -218,14 +229,16 @@ def test_the_first_run_deploys_every_host_from_the_wheelhouse(deploy: Deploy):
         keys = sorted(p.relative_to(pki).as_posix() for p in pki.rglob("*.key"))
         for key in keys:
             assert stat.S_IMODE((pki / key).stat().st_mode) == 0o600, key
-        node = {"controller": None, "wec": "wec", "shore-pi": "shore"}[host.name]
-        assert keys == (["hub.key"] if node is None else [f"nodes/{node}.key"]), host.name
+        own = {"controller": "hub", "bay2": "partitions/bay2", "wec": "nodes/wec"}
+        assert keys == [own.get(host.name, "nodes/shore") + ".key"], host.name
 
     units = deploy.host("controller").fs / "etc/systemd/system"
     hub = (units / "fleetdaq-hub.service").read_text()
     assert "ExecStart=/opt/fleetdaq/venv/bin/fleetdaq hub --config /etc/fleetdaq/site.yaml" in hub
     assert "ReadWritePaths=/var/lib/fleetdaq/data\n" in hub
     assert "-rr" in (units / "phc2sys.service").read_text()  # the grandmaster's NIC clock
+    bay2 = (deploy.host("bay2").fs / "etc/systemd/system/fleetdaq-hub.service").read_text()
+    assert "--data /var/lib/fleetdaq/data/bay2 --partition bay2\n" in bay2
     conf = deploy.host("controller").fs / "etc/linuxptp/fleetdaq-ptp4l.conf"
     assert "priority1\t\t10" in conf.read_text()
     assert "time_stamping\t\thardware" in conf.read_text()
@@ -247,7 +260,7 @@ def test_a_second_run_changes_nothing(deploy: Deploy):
     again = deploy.playbook()
     assert again.returncode == 0, again.stdout[-6000:]
     counts = recap(again.stdout)
-    assert set(counts) == {"controller", "wec", "shore-pi"}
+    assert set(counts) == {"controller", "bay2", "wec", "shore-pi"}
     assert {name: c["changed"] for name, c in counts.items()} == dict.fromkeys(counts, 0), (
         "\n".join(line for line in again.stdout.splitlines() if line.startswith("changed"))
     )
@@ -284,6 +297,7 @@ def test_every_unit_passes_systemd_analyze_verify(deploy: Deploy, tmp_path: Path
             verified.append(f"{host.name}:{unit.name}")
             copy.unlink()
     assert sorted(verified) == [
+        "bay2:fleetdaq-hub.service",
         "controller:fleetdaq-hub.service",
         "controller:phc2sys.service",
         "controller:ptp4l@.service",
@@ -317,4 +331,22 @@ def test_an_edge_without_a_node_in_the_site_file_stops_before_any_host(
     assert r.returncode != 0
     assert "host shore-pi runs node 'ghost'" in r.stdout, r.stdout[-4000:]
     assert "nodes.shore: no host of" in r.stdout or "which is not in" in r.stdout
+    assert "PLAY [Hub]" not in r.stdout
+
+
+def test_a_partition_hub_the_site_file_does_not_have_stops_before_any_host(
+    deploy: Deploy, tmp_path: Path
+):
+    bad = write_inventory(
+        deploy.lab,
+        deploy.root,
+        Path(deploy.env["HOME"]),
+        tmp_path / "inventory.yml",
+        partition="bay9",
+        **{"shore-pi": "shore"},
+    )
+    r = deploy.playbook(bad)
+    assert r.returncode != 0
+    assert "host bay2 runs fleetdaq_partition 'bay9'" in r.stdout, r.stdout[-4000:]
+    assert "(hub.partitions: bay2)" in r.stdout
     assert "PLAY [Hub]" not in r.stdout
