@@ -701,15 +701,18 @@ hub:
     bay2:
       listen: [tls/127.0.0.1:{bay2}]
       nodes: [cell-a]
+    bay3:
+      listen: [tls/127.0.0.1:{bay3}]
+      nodes: [cell-b]
 nodes:
 {nodes}
 """
 
 
 def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Path):
-    """security.tls with partitions: the hubs' routers link with the site's hub pair (mutual
-    TLS) and the access control lets hubs, and only hubs, speak across the mesh. The main hub
-    sees bay2's node and stream; an operator's split reaches bay2 through the main hub, and
+    """security.tls with partitions: three hubs' routers mesh by mutual TLS, the main hub with
+    the site's hub pair, bay2 and bay3 each with its own, and the access control lets hubs,
+    and only hubs, speak across the mesh. The main hub sees both partitions recording; an operator's split reaches bay2 through the main hub, and
     `--partition` asks bay2 directly; a node's certificate can neither ask bay2's recorder nor
     put a report in bay2's name. A command to bay2's node crosses the mesh, and is applied
     (the node hears the main hub's heartbeat across it). bay2's own pair (CN ``hub:bay2``) is
@@ -730,15 +733,20 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         issue_node(pki, node)
     issue_operator(pki, "ann", "control")
     issue_partition(pki, "bay2", ["127.0.0.1"])
-    main_port, bay2_port = free_port(), free_port()
+    issue_partition(pki, "bay3", ["127.0.0.1"])
+    issue_node(pki, "cell-b")
+    main_port, bay2_port, bay3_port = free_port(), free_port(), free_port()
+    port_of = {"cell-a": bay2_port, "cell-b": bay3_port}
     nodes = "".join(
         NODE.format(name=n)
-        + f"    connect: [tls/127.0.0.1:{bay2_port if n == 'cell-a' else main_port}]\n"
+        + f"    connect: [tls/127.0.0.1:{port_of.get(n, main_port)}]\n"
         + "    outputs:\n      lamp: {driver: pcf8574, address: 0x20, pin: 1, safe: 0, sim: {}}\n"
-        for n in ("wec-a", "cell-a", "wec-z")  # wec-z: a main-hub node that never starts
+        for n in ("wec-a", "cell-a", "cell-b", "wec-z")  # wec-z: a main-hub node, never started
     )
     cfg = tmp_path / "site.yaml"
-    cfg.write_text(SECURE_SITE.format(pki=pki, main=main_port, bay2=bay2_port, nodes=nodes))
+    cfg.write_text(
+        SECURE_SITE.format(pki=pki, main=main_port, bay2=bay2_port, bay3=bay3_port, nodes=nodes)
+    )
     env = {
         **os.environ,
         "FLEETDAQ_CERT": str(pki / "operators" / "ann.crt"),
@@ -762,27 +770,33 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         for name, args in (
             ("main", ["hub", "--data", str(tmp_path / "main")]),
             ("bay2", ["hub", "--partition", "bay2", "--data", str(tmp_path / "bay2")]),
+            ("bay3", ["hub", "--partition", "bay3", "--data", str(tmp_path / "bay3")]),
             ("wec-a", ["edge", "--node", "wec-a", "--spool", str(tmp_path / "spool")]),
             ("cell-a", ["edge", "--node", "cell-a", "--spool", str(tmp_path / "spool")]),
+            ("cell-b", ["edge", "--node", "cell-b", "--spool", str(tmp_path / "spool")]),
         ):
             procs.append(Proc([args[0], "--config", str(cfg), *args[1:]], tmp_path / f"{name}.log"))
-        # The main hub sees bay2 across the TLS mesh: there, reporting, recording cell-a.
+        # The main hub sees bay2 and bay3 across the TLS mesh (three routers, each partition
+        # with its own pair): there, reporting, recording their nodes.
         wait_until(
-            lambda: (
-                (p := (status().get("partitions") or {}).get("bay2") or {}).get("alive")
+            lambda: all(
+                (p := (status().get("partitions") or {}).get(name) or {}).get("alive")
                 and (p.get("recorder") or {}).get("current_file")
+                for name in ("bay2", "bay3")
             ),
             90,
-            "bay2 there and recording, as the main hub sees it",
+            "bay2 and bay3 there and recording, as the main hub sees them",
         )
         r = ann("rec", "split")
         assert r.returncode == 0, r.stdout + r.stderr
         assert "partition bay2: closed " in r.stdout
-        # A command from the main hub to bay2's node: across the mesh, and applied only
-        # because cell-a hears the main hub's heartbeat across it too.
-        r = ann("out", "set", "cell-a/lamp", "1", "--reason", "across the mesh")
-        assert r.returncode == 0, r.stdout + r.stderr
-        assert "applied" in r.stdout
+        assert "partition bay3: closed " in r.stdout
+        # A command from the main hub to each partition's node: across the mesh, and applied
+        # only because the node hears the main hub's heartbeat across it too.
+        for node in ("cell-a", "cell-b"):
+            r = ann("out", "set", f"{node}/lamp", "1", "--reason", "across the mesh")
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert "applied" in r.stdout
         r = ann("rec", "status", "--partition", "bay2", "--json")
         assert r.returncode == 0, r.stdout + r.stderr
         assert len(json.loads(r.stdout)["recorder"]["files"]) == 1
