@@ -712,10 +712,11 @@ nodes:
 def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Path):
     """security.tls with partitions: three hubs' routers mesh by mutual TLS, the main hub with
     the site's hub pair, bay2 and bay3 each with its own, and the access control lets hubs,
-    and only hubs, speak across the mesh. The main hub sees both partitions recording; an operator's split reaches bay2 through the main hub, and
-    `--partition` asks bay2 directly; a node's certificate can neither ask bay2's recorder nor
-    put a report in bay2's name. A command to bay2's node crosses the mesh, and is applied
-    (the node hears the main hub's heartbeat across it). bay2's own pair (CN ``hub:bay2``) is
+    and only hubs, speak across the mesh. The main hub sees both partitions recording; an
+    operator's split reaches them through the main hub, and `--partition` asks bay2 directly;
+    a node's certificate can neither ask bay2's recorder nor put a report in bay2's name. A
+    command to each partition's node crosses the mesh, and is applied (the node hears the main
+    hub's heartbeat across it). bay2's own pair (CN ``hub:bay2``) is
     all its router has, and on the main hub's router that key speaks for bay2's slice only: it
     cannot publish a main-hub node's data, events or liveliness, ack its stream, beat the
     heartbeat, command its output or ask the main hub's services."""
