@@ -370,6 +370,16 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
             ("suppressed", "Notifications not mailed by the policy."),
         ):
             yield CounterMetricFamily(f"fleetdaq_notifications_{key}", doc, value=n.get(key, 0))
+    if view.certificates:
+        ends = GaugeMetricFamily(
+            "fleetdaq_certificate_expiry_timestamp_seconds",
+            "When a certificate the hub serves with expires (Unix time): hub, ca.",
+            labels=["certificate"],
+        )
+        for which, cert in sorted(view.certificates.items()):
+            if "not_after_ns" in cert:
+                ends.add_metric([which], cert["not_after_ns"] / 1e9)
+        yield ends
     events = CounterMetricFamily("fleetdaq_events", "Events logged, by level.", labels=["level"])
     for level, count in sorted(view.event_counts.items()):
         events.add_metric([level.lower()], count)

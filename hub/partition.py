@@ -48,6 +48,7 @@ from edge.paths import default_data_dir
 from edge.systemd import Systemd
 from edge.threads import NamedThread
 from hub.bus import EventBus
+from hub.certificates import CertificateWatch
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
 from hub.node_watch import NodeWatch
@@ -284,7 +285,12 @@ class PartitionRuntime:
                 *([self.snapshot_requests] if self.snapshot_requests is not None else []),
                 self.nodes,
                 self.hub_health,
-                self.report,
+                self.report,  # before the certificates: their warning goes to the main hub
+                *(
+                    [CertificateWatch(site, self.model, self.bus, partition)]
+                    if site.security.tls
+                    else []
+                ),
                 self.recorder_requests,
                 self.status,
             ]

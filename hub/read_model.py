@@ -119,6 +119,9 @@ class HubView:
     """Transitions since the hub started: raised, cleared, acked, shelved, disabled."""
     notifier: dict[str, Any] = field(default_factory=dict)
     """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
+    certificates: dict[str, Any] = field(default_factory=dict)
+    """With security.tls: this hub's certificate and the site CA's, each ``{path, cn,
+    not_after_ns}`` (`hub.certificates`)."""
     rules: dict[str, Any] = field(default_factory=dict)
     """Every rule's and hub interlock's state (`hub.rules.RuleEngine.states`)."""
     snapshots: dict[str, Any] = field(default_factory=dict)

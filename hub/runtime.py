@@ -33,6 +33,7 @@ from hub.alarms.requests import AlarmRequests
 from hub.alarms.supervisor import Supervisor
 from hub.batch_feed import BatchFeed
 from hub.bus import EventBus
+from hub.certificates import CertificateWatch
 from hub.commands import CommandService
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
@@ -110,6 +111,9 @@ class HubRuntime:
         self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
         self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
         self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
+        self.certificates = (
+            CertificateWatch(site, self.model, self.bus) if site.security.tls else None
+        )
         notify = site.hub.notify
         outbox = Path(notify.outbox_dir) if notify.outbox_dir else self.data_dir / "outbox"
         self.notifier = EmailNotifier(notify, site.site, outbox, self.bus, self.model)
@@ -225,6 +229,7 @@ class HubRuntime:
                 *([self.partitions] if self.partitions is not None else []),
                 self.fleet,
                 self.hub_health,
+                *([self.certificates] if self.certificates is not None else []),
                 *([self.snapshots] if self.snapshots is not None else []),
                 *([self.snapshot_triggers] if self.snapshot_triggers is not None else []),
                 *([self.live_plots] if self.live_plots is not None else []),

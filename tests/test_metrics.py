@@ -144,3 +144,34 @@ def test_the_exposition_writes_what_prometheus_client_writes_even_for_awkward_va
     assert {s.labels["node"] for s in parsed["x_events"].samples} >= set(odd) - {""}
     with pytest.raises(KeyError):  # a kind it does not write is refused, not written wrong
         exposition([SummaryMetricFamily("x_summary", "S.", count_value=1, sum_value=2.0)])
+
+
+def test_certificate_expiry_is_a_timestamp_per_certificate():
+    """`fleetdaq_certificate_expiry_timestamp_seconds{certificate}` from the read model's
+    ``certificates`` (security.tls), as prometheus-client would write it; none without TLS."""
+    from hub.read_model import HubView
+
+    ends = {"hub": 1_900_000_000, "ca": 2_100_000_000}
+    view = HubView(
+        site="prom",
+        time_ns=0,
+        certificates={
+            **{
+                k: {"path": f"/p/{k}.crt", "cn": k, "not_after_ns": v * 10**9}
+                for k, v in ends.items()
+            },
+            "bad": {"path": "/p/bad.crt", "error": "cannot read it"},
+        },
+    )
+    text, _ = render_metrics(view)
+    parsed = {f.name: f for f in text_string_to_metric_families(text.decode())}
+    samples = parsed["fleetdaq_certificate_expiry_timestamp_seconds"].samples
+    assert {s.labels["certificate"]: s.value for s in samples} == ends
+    assert text == reference_metrics(view, _scrape_time(text))
+    bare, _ = render_metrics(HubView(site="prom", time_ns=0))
+    assert b"fleetdaq_certificate_expiry" not in bare
+
+
+def _scrape_time(text: bytes) -> float:
+    line = next(x for x in text.decode().splitlines() if x.startswith("fleetdaq_hub_scrape_time"))
+    return float(line.split()[-1])

@@ -268,6 +268,54 @@ def test_keys_others_may_read_are_refused_at_start(site: Site, tmp_path: Path):
         assert "chmod 600" in lines[0]
 
 
+def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
+    site: Site, tmp_path: Path
+):
+    """The site's 10-year CA and 825-day hub pair: watched, no alarm. A site whose CA (and so
+    its hub's pair) ends in 10 days: ``certificate_expiring/hub`` is active with the days
+    left, and a WARNING event names the file and how to rotate."""
+    view = site.hub_view()
+    assert view["certificates"]["hub"]["cn"] == "hub"
+    assert view["certificates"]["ca"]["not_after_ns"] > time.time_ns() + 3000 * 86_400e9
+    (alarm,) = [a for a in view["alarms"] if a["name"] == "certificate_expiring/hub"]
+    assert not alarm["active"]
+
+    pki = tmp_path / "pki"
+    init(pki, "soon", ["127.0.0.1"], days=10)
+    issue_operator(pki, "bob", "view")
+    port = free_port()
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(
+        SITE.replace("site: sec", "site: soon").format(pki=pki, port=port)
+        .replace("{ann: control, bob: view}", "{bob: view}")
+    )  # fmt: skip
+    soon = Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys("soon"), [])
+    hub = Proc(["hub", "--config", str(cfg), "--data", str(soon.data)], tmp_path / "hub.log")
+    try:
+        wait_for_port(port)
+
+        def expiring() -> dict[str, Any] | None:
+            v = soon.try_view()
+            alarms = [a for a in (v or {}).get("alarms", []) if a["active"]]
+            return next((a for a in alarms if a["name"] == "certificate_expiring/hub"), None)
+
+        wait_until(lambda: expiring() is not None, 30, "certificate_expiring/hub raised")
+        alarm = expiring()
+        assert alarm is not None
+        assert 9.0 < alarm["value"] <= 10.0, alarm
+        assert alarm["unit"] == "days"
+        assert alarm["severity"] == "major"
+        events = [e for e in soon.hub_view()["recent_events"] if e["tag"] == "certificate_expiring"]
+        which = {kv["value"] for e in events for kv in e["fields"] if kv["key"] == "which"}
+        assert which == {"hub", "ca"}, events
+        assert all(e["level"] == logging.WARNING for e in events)
+        assert all("fleetdaq pki init --force" in e["message"] for e in events)
+        assert str(pki / "hub.crt") in " ".join(e["message"] for e in events)
+        assert hub.terminate(30) == 0, hub.output()[-3000:]
+    finally:
+        hub.kill()
+
+
 def test_zz_the_fleet_recorded_without_gaps_and_nothing_forged(site: Site):
     view = site.hub_view()
     for node, stream in (("wec", "t8"), ("shore", "env")):

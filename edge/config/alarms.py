@@ -279,6 +279,11 @@ class UniversalAlarms(Strict):
         severity="major", after_s=600
     )
     """A notification has waited `after_s` without being delivered."""
+    certificate_expiring: UniversalRule | Literal[False] = UniversalRule(
+        severity="major", threshold=30
+    )
+    """With security.tls: the hub's certificate or the site CA expires within `threshold`
+    days (`hub.certificates`)."""
 
 
 def alarm_names(site: Any) -> set[str]:
@@ -300,6 +305,8 @@ def alarm_names(site: Any) -> set[str]:
         names.add("recorder/hub")
     if u.notifications_failing and site.hub.notify.groups:
         names.add("notifications_failing/hub")
+    if u.certificate_expiring and site.security.tls:
+        names.add("certificate_expiring/hub")
     for p in site.hub.partitions:  # each partition hub, watched from the main hub
         for kind, on in (("node_down", u.node_down), ("disk_nearly_full", u.disk_nearly_full),
                          ("recorder", u.recorder)):  # fmt: skip

@@ -269,6 +269,17 @@ def _universal(site: SiteConfig) -> list[AlarmDef]:
                 threshold=after, latch=r.latch, universal=True,
             )
         )  # fmt: skip
+    if (r := rule(u.certificate_expiring)) is not None and site.security.tls:
+        days = r.threshold if r.threshold is not None else 30.0
+        out.append(
+            AlarmDef(
+                "certificate_expiring/hub", "hub", "certificate_expiring",
+                f"the hub's certificate or the site CA expires within {days:g} days", r.severity,
+                node="hub", unit="days", threshold=days, latch=r.latch, universal=True,
+                description="Past it no edge connects (they spool). Rotate: fleetdaq pki init "
+                "--force, re-issue every pair, copy them out, restart hub and edges.",
+            )
+        )  # fmt: skip
     return out
 
 

@@ -354,6 +354,12 @@ class Supervisor:
             notifier = view.notifier
             age = float(notifier.get("oldest_queued_age_s", 0.0)) if notifier else 0.0
             return age > d.threshold, age
+        if d.check == "certificate_expiring":
+            ends = [c["not_after_ns"] for c in view.certificates.values() if "not_after_ns" in c]
+            if not ends:
+                return False, math.nan
+            days = (min(ends) - now) / 86_400e9
+            return days < d.threshold, days
         return False, math.nan
 
     # --- transitions -------------------------------------------------------------------------

@@ -1,0 +1,142 @@
+"""When the certificates this hub serves with expire (with ``security.tls``): its own (the main
+hub's ``hub.crt``, a partition hub's ``partitions/<name>.crt``) and the site CA's.
+
+A certificate that has expired stops every link that uses it: past the CA's or the hub's, no
+edge can connect, and the edges spool until their disks fill. A site's pairs are made
+together (`fleetdaq pki init`, then `issue`, 825 days each, never past the CA) and rotated
+together, so the hub's own certificate is the first to go. Both are read at start and every
+hour into the read model (``certificates``), where the universal alarm
+``certificate_expiring/hub`` watches them. While one is within ``warn_days`` a WARNING event
+says which, when, and how to rotate, at start and then once a day (a partition hub's reaches
+the main hub's events.log with its others).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from edge.config.site import SiteConfig
+from edge.threads import NamedThread
+from hub.bus import EventBus
+from hub.read_model import ReadModel
+
+log = logging.getLogger("fleetdaq.hub")
+
+CHECK_PERIOD_S = 3600.0
+TELL_EVERY_S = 86400.0
+WARN_DAYS = 30.0
+DAY_NS = 86_400 * 10**9
+
+
+def read_certificate(path: Path) -> dict[str, Any]:
+    """``{"path", "cn", "not_after_ns"}`` of one PEM certificate, or ``{"path", "error"}``."""
+    from cryptography import x509  # the hub extra's (as TLS itself needs `fleetdaq pki`)
+    from cryptography.x509.oid import NameOID
+
+    try:
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+    except (OSError, ValueError) as err:
+        return {"path": str(path), "error": f"cannot read it: {err}"}
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    end = cert.not_valid_after_utc
+    return {
+        "path": str(path),
+        "cn": str(names[0].value) if names else "",
+        "not_after_ns": round(end.timestamp()) * 10**9,
+    }
+
+
+class CertificateWatch:
+    """The `certificates` service (only with ``security.tls``)."""
+
+    name = "certificates"
+
+    def __init__(
+        self,
+        site: SiteConfig,
+        model: ReadModel,
+        bus: EventBus,
+        partition: str | None = None,
+        period_s: float = CHECK_PERIOD_S,
+    ) -> None:
+        pki = Path(site.security.pki_dir)
+        own = pki / "hub.crt" if partition is None else pki / "partitions" / f"{partition}.crt"
+        self.files = {"hub": own, "ca": pki / "ca.crt"}
+        rule = site.hub.universal_alarms.certificate_expiring
+        self.warn_days = float(rule.threshold) if rule and rule.threshold is not None else WARN_DAYS
+        self.model = model
+        self.bus = bus
+        self.period_s = period_s
+        self._told: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._thread = NamedThread(target=self._run, name="certificates", daemon=True)
+        self._died: str | None = None
+
+    def start(self) -> None:
+        self.check()
+        self._thread.start()
+
+    def check(self, now_ns: int | None = None) -> dict[str, Any]:
+        """Read both certificates, put them in the read model, warn of one that expires soon."""
+        now_ns = time.time_ns() if now_ns is None else now_ns
+        found = {which: read_certificate(path) for which, path in self.files.items()}
+        self.model.put("certificates", found)
+        for which, cert in found.items():
+            if "error" in cert:
+                self._tell(which, logging.ERROR, f"{cert['path']}: {cert['error']}", cert)
+                continue
+            days = (cert["not_after_ns"] - now_ns) / DAY_NS
+            if days < self.warn_days:
+                what = (
+                    "the site CA" if which == "ca" else f"this hub's certificate (CN {cert['cn']})"
+                )
+                until = dt.datetime.fromtimestamp(cert["not_after_ns"] / 1e9, dt.UTC)
+                when = (
+                    f"expired on {until:%Y-%m-%d %H:%M}Z"
+                    if days <= 0
+                    else f"expires on {until:%Y-%m-%d %H:%M}Z, in {days:.1f} days"
+                )
+                self._tell(
+                    which,
+                    logging.WARNING if days > 0 else logging.ERROR,
+                    f"{what} {cert['path']} {when}: after it no link that uses it connects. "
+                    "Rotate: fleetdaq pki init --force, re-issue every pair, copy, restart "
+                    "(README: Adding a node, revoking, rotating)",
+                    cert,
+                    days_left=round(days, 2),
+                )
+        return found
+
+    def _tell(
+        self, which: str, level: int, text: str, cert: dict[str, Any], **fields: object
+    ) -> None:
+        last = self._told.get(which)
+        now = time.monotonic()
+        if last is not None and now - last < TELL_EVERY_S:
+            return
+        self._told[which] = now
+        self.bus.emit(
+            level, "certificates", "certificate_expiring", text, which=which, path=cert["path"],
+            **fields,
+        )  # fmt: skip
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(self.period_s):
+                self.check()
+        except Exception as err:
+            self._died = f"the certificate watch died: {err!r}"
+            log.critical("%s", self._died, exc_info=True)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5.0)
+
+    def failure(self) -> str | None:
+        return self._died
