@@ -15,17 +15,14 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from edge.config.site import SiteConfig
-from edge.threads import NamedThread
 from hub.bus import EventBus
+from hub.periodic import Periodic
 from hub.read_model import ReadModel
-
-log = logging.getLogger("fleetdaq.hub")
 
 CHECK_PERIOD_S = 3600.0
 TELL_EVERY_S = 86400.0
@@ -51,7 +48,7 @@ def read_certificate(path: Path) -> dict[str, Any]:
     }
 
 
-class CertificateWatch:
+class CertificateWatch(Periodic):
     """The `certificates` service (only with ``security.tls``)."""
 
     name = "certificates"
@@ -64,6 +61,7 @@ class CertificateWatch:
         partition: str | None = None,
         period_s: float = CHECK_PERIOD_S,
     ) -> None:
+        super().__init__("certificates", period_s)
         pki = Path(site.security.pki_dir)
         own = pki / "hub.crt" if partition is None else pki / "partitions" / f"{partition}.crt"
         self.files = {"hub": own, "ca": pki / "ca.crt"}
@@ -71,15 +69,14 @@ class CertificateWatch:
         self.warn_days = float(rule.threshold) if rule and rule.threshold is not None else WARN_DAYS
         self.model = model
         self.bus = bus
-        self.period_s = period_s
         self._told: dict[str, float] = {}
-        self._stop = threading.Event()
-        self._thread = NamedThread(target=self._run, name="certificates", daemon=True)
-        self._died: str | None = None
 
     def start(self) -> None:
         self.check()
-        self._thread.start()
+        self.start_ticking()
+
+    def tick(self) -> None:
+        self.check()
 
     def check(self, now_ns: int | None = None) -> dict[str, Any]:
         """Read both certificates, put them in the read model, warn of one that expires soon."""
@@ -124,19 +121,3 @@ class CertificateWatch:
             level, "certificates", "certificate_expiring", text, which=which, path=cert["path"],
             **fields,
         )  # fmt: skip
-
-    def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.period_s):
-                self.check()
-        except Exception as err:
-            self._died = f"the certificate watch died: {err!r}"
-            log.critical("%s", self._died, exc_info=True)
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
-
-    def failure(self) -> str | None:
-        return self._died

@@ -4,8 +4,6 @@ its machine (CPU, memory, the recording disk's free space, temperature), in the 
 
 from __future__ import annotations
 
-import logging
-import threading
 import time
 from pathlib import Path
 
@@ -14,15 +12,13 @@ from edge.cdr import encode
 from edge.host_metrics import HostMetricsReader
 from edge.keys import HUB
 from edge.messages import NODE_HEALTH_TYPE, NodeHealth, TimeSyncStatus
-from edge.threads import NamedThread
+from hub.periodic import Periodic
 from hub.read_model import ReadModel
 from hub.recorder import Recorder
 from hub.session import health_topic
 
-log = logging.getLogger("fleetdaq.hub")
 
-
-class HubHealth:
+class HubHealth(Periodic):
     name = "hub-health"
 
     def __init__(
@@ -34,15 +30,12 @@ class HubHealth:
         node: str = HUB,
     ) -> None:
         """`node`: who this health is of (a partition hub's is ``hub/<name>``)."""
+        super().__init__("hub-health", period_s)
         self.node = node
         self.model = model
         self.recorder = recorder
-        self.period_s = period_s
         self.host = HostMetricsReader({"data": data_dir})
         self.started_ns = time.time_ns()
-        self._stop = threading.Event()
-        self._thread = NamedThread(target=self._run, name="hub-health", daemon=True)
-        self._died: str | None = None
 
     def read(self) -> NodeHealth:
         now = time.time_ns()
@@ -58,25 +51,11 @@ class HubHealth:
 
     def start(self) -> None:
         self.model.put("hub_health", self.read())
-        self._thread.start()
+        self.start_ticking()
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.period_s):
-                health = self.read()
-                self.model.put("hub_health", health)
-                self.recorder.record(
-                    health_topic(HUB), encode(health), health.time_ns, health.time_ns,
-                    NODE_HEALTH_TYPE,
-                )  # fmt: skip
-        except Exception as err:
-            self._died = f"the hub-health thread died: {err!r}"
-            log.critical("%s", self._died, exc_info=True)
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
-
-    def failure(self) -> str | None:
-        return self._died
+    def tick(self) -> None:
+        health = self.read()
+        self.model.put("hub_health", health)
+        self.recorder.record(
+            health_topic(HUB), encode(health), health.time_ns, health.time_ns, NODE_HEALTH_TYPE
+        )

@@ -210,3 +210,28 @@ def test_a_dead_recorder_thread_is_reported_loudly_not_hidden(hub: tuple[HubRunt
     text = (runtime.data_dir / "events.log").read_text()
     assert "CRITICAL" in text
     assert "writer_died" in text
+
+
+def test_a_periodic_workers_tick_that_raises_is_its_services_failure():
+    """`hub.periodic.Periodic` (the heartbeat, the hub's health, the certificate watch): ticks
+    every period; one that raises ends the thread, and `failure()` says so."""
+    from hub.periodic import Periodic
+
+    class Ticker(Periodic):
+        def __init__(self) -> None:
+            super().__init__("ticker", 0.001)
+            self.ticks = 0
+
+        def tick(self) -> None:
+            self.ticks += 1
+            if self.ticks == 3:
+                raise RuntimeError("third tick")
+
+    t = Ticker()
+    assert t.failure() is None
+    t.start_ticking()
+    t._thread.join(30)
+    assert not t._thread.is_alive()
+    assert t.ticks == 3
+    assert t.failure() == "the ticker thread died: RuntimeError('third tick')"
+    t.stop()
