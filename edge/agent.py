@@ -12,6 +12,7 @@ in the stream loops, so they hold whether or not the hub is there.
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import threading
 import time
@@ -35,7 +36,7 @@ from edge.keys import SiteKeys
 from edge.messages import KeyValue, NodeHealth, StreamHealth
 from edge.outputs import OutputService
 from edge.paths import default_spool_dir
-from edge.security import SecretFileError, TlsFiles, node_tls
+from edge.security import SecretFileError, TlsFiles, node_tls, read_certificate
 from edge.spool import StreamSpool
 from edge.stream_loop import StreamLoop
 from edge.systemd import Systemd
@@ -96,6 +97,8 @@ class EdgeAgent:
         self._closed = False
         self.started_ns = 0
         self._host = HostMetricsReader({"spool": self.spool_dir})
+        self.certificate_not_after_ns = 0
+        """With TLS: when the first of its certificate and the site CA expires (UTC ns)."""
 
     def __enter__(self) -> EdgeAgent:
         self.start()
@@ -150,6 +153,7 @@ class EdgeAgent:
             lambda level, tag, msg: events.emit(level, "display", tag, msg),
         )
         self.started_ns = time.time_ns()
+        self._check_certificates(events)
         for loop in self.loops:
             self.systemd.beats.append(loop.beat)
         outputs.start()
@@ -264,7 +268,47 @@ class EdgeAgent:
             streams=tuple(self._stream_health(loop, now) for loop in self.loops),
             clock=self.time_sync.message(),
             outputs=self.outputs.states() if self.outputs is not None else (),
+            certificate_not_after_ns=self.certificate_not_after_ns,
         )
+
+    def _check_certificates(self, events: EventPublisher) -> None:
+        """With TLS: when the first of this node's certificate and the site CA expires goes
+        into its health, where the hub watches it (``certificate_expiring/<node>``). One that
+        ends within the alarm's days, or has ended, is said now too: past it the hub refuses
+        this node (it spools until a new pair is here)."""
+        if self.tls is None:
+            return
+        mine, ca = read_certificate(self.tls.cert), read_certificate(self.tls.ca)
+        for c in (mine, ca):
+            if "error" in c:
+                events.emit(
+                    logging.WARNING, "certificates", "certificate_unreadable",
+                    f"{c['path']}: {c['error']}; the hub cannot warn before it expires",
+                    path=c["path"],
+                )  # fmt: skip
+                return
+        first = ca if int(ca["not_after_ns"]) <= int(mine["not_after_ns"]) else mine
+        self.certificate_not_after_ns = int(first["not_after_ns"])
+        rule = self.site.hub.universal_alarms.certificate_expiring
+        warn = float(rule.threshold) if rule and rule.threshold is not None else 30.0
+        days = (self.certificate_not_after_ns - time.time_ns()) / 86_400e9
+        if days >= warn:
+            return
+        until = dt.datetime.fromtimestamp(self.certificate_not_after_ns / 1e9, dt.UTC)
+        when = f"expired on {until:%Y-%m-%d %H:%M}Z" if days <= 0 else (
+            f"expires on {until:%Y-%m-%d %H:%M}Z, in {days:.1f} days"
+        )  # fmt: skip
+        if first is ca:
+            what, fix = "the site CA", "rotate every pair: fleetdaq pki init --force, then issue"
+        else:
+            what, fix = f"node {self.node}'s certificate", f"fleetdaq pki issue {self.node} --force"
+        events.emit(
+            logging.ERROR if days <= 0 else logging.WARNING, "certificates",
+            "certificate_expiring",
+            f"{what} {first['path']} {when}: past it the hub refuses this node, which spools "
+            f"until a new pair is here ({fix}; copy it here; restart)",
+            which="ca" if first is ca else "node", path=first["path"], days_left=round(days, 2),
+        )  # fmt: skip
 
     @staticmethod
     def _stream_health(loop: StreamLoop, now_ns: int) -> StreamHealth:

@@ -8,8 +8,11 @@ the package are the same thing. A Python message is a frozen dataclass registere
 Decoding treats every payload as hostile: every length is checked against what is left and
 against a limit before anything is allocated, booleans must be 0 or 1, strings must be UTF-8
 and NUL-terminated, and nothing may trail the message. Any problem is a `WireError`; nothing
-else escapes. The high-rate `SampleBatch` has its own encoder and decoder (`edge.wire`), which
-copy the sample arrays in one go; every other message is small and goes through here.
+else escapes. A message is appendable (as DDS-XTypes calls it): a field added at its end has a
+default in the Python class, and a payload that ends just before such fields (written by an
+older fleetdaq, or recorded by one) decodes with their defaults. The high-rate `SampleBatch`
+has its own encoder and decoder (`edge.wire`), which copy the sample arrays in one go; every
+other message is small and goes through here.
 """
 
 from __future__ import annotations
@@ -165,6 +168,29 @@ def message(name: str) -> Callable[[type[T]], type[T]]:
     return register
 
 
+def _required(name: str) -> int:
+    """How many leading fields of message `name` have no default (the rest were appended)."""
+    n = _REQUIRED.get(name)
+    if n is None:
+        cls = _CLASSES.get(name)
+        if cls is None:
+            return len(_definition(name).fields)
+        fields = dataclasses.fields(cls)
+        n = _REQUIRED[name] = next(
+            (
+                i
+                for i, f in enumerate(fields)
+                if f.default is not dataclasses.MISSING
+                or f.default_factory is not dataclasses.MISSING
+            ),
+            len(fields),
+        )
+    return n
+
+
+_REQUIRED: dict[str, int] = {}
+
+
 def type_of(msg: Any) -> str:
     name: str = type(msg).__ros_type__
     return name
@@ -285,7 +311,7 @@ def decode(payload: bytes | bytearray | memoryview, cls: type[T]) -> T:
     """Decode a message of type `cls` (registered with `message`). Raises WireError, only."""
     name: str = cls.__ros_type__  # type: ignore[attr-defined]
     r = Reader(payload)
-    msg: T = _get_message(r, _definition(name))
+    msg: T = _get_message(r, _definition(name), appendable=True)
     r.end()
     return msg
 
@@ -305,9 +331,11 @@ def _get_value(r: Reader, kind: str) -> Any:
     return _get_message(r, _definition(kind))
 
 
-def _get_message(r: Reader, d: MsgDef) -> Any:
+def _get_message(r: Reader, d: MsgDef, appendable: bool = False) -> Any:
     values: dict[str, Any] = {}
-    for f in d.fields:
+    for i, f in enumerate(d.fields):
+        if appendable and r.pos == len(r.buf) and i >= _required(d.name):
+            break  # an older form of the message: the fields added since take their defaults
         if f.array:
             n = r.count()
             if f.type in ("uint8", "byte"):

@@ -311,6 +311,8 @@ class NodeHealth:
     streams: tuple[StreamHealth, ...]
     clock: TimeSyncStatus
     outputs: tuple[OutputState, ...] = ()
+    certificate_not_after_ns: int = 0
+    """When the TLS certificate it connects with expires (0: no TLS, or it cannot tell)."""
 
     def stream(self, name: str) -> StreamHealth | None:
         return next((s for s in self.streams if s.name == name), None)

@@ -9,6 +9,7 @@ import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 OPERATOR_CN_PREFIX = "operator:"
 """An operator's certificate CN is ``operator:NAME`` (a node's is the node's name)."""
@@ -101,3 +102,23 @@ def operator_tls(pki_dir: Path) -> TlsFiles:
     key = Path(os.environ.get("FLEETDAQ_KEY") or cert.with_suffix(".key"))
     ca = Path(os.environ.get("FLEETDAQ_CA") or pki_dir / "ca.crt")
     return TlsFiles(ca, cert, key).check("the operator")
+
+
+def read_certificate(path: Path) -> dict[str, Any]:
+    """``{"path", "cn", "not_after_ns"}`` of one PEM certificate, or ``{"path", "error"}``."""
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+    except ImportError:  # a hand-made install; the package depends on it
+        return {"path": str(path), "error": "cannot read it: cryptography is not installed"}
+    try:
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+    except (OSError, ValueError) as err:
+        return {"path": str(path), "error": f"cannot read it: {err}"}
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    end = cert.not_valid_after_utc
+    return {
+        "path": str(path),
+        "cn": str(names[0].value) if names else "",
+        "not_after_ns": round(end.timestamp()) * 10**9,
+    }

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from edge.config.site import SiteConfig
+from edge.security import read_certificate
 from hub.bus import EventBus
 from hub.periodic import Periodic
 from hub.read_model import ReadModel
@@ -28,24 +29,6 @@ CHECK_PERIOD_S = 3600.0
 TELL_EVERY_S = 86400.0
 WARN_DAYS = 30.0
 DAY_NS = 86_400 * 10**9
-
-
-def read_certificate(path: Path) -> dict[str, Any]:
-    """``{"path", "cn", "not_after_ns"}`` of one PEM certificate, or ``{"path", "error"}``."""
-    from cryptography import x509  # the hub extra's (as TLS itself needs `fleetdaq pki`)
-    from cryptography.x509.oid import NameOID
-
-    try:
-        cert = x509.load_pem_x509_certificate(path.read_bytes())
-    except (OSError, ValueError) as err:
-        return {"path": str(path), "error": f"cannot read it: {err}"}
-    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-    end = cert.not_valid_after_utc
-    return {
-        "path": str(path),
-        "cn": str(names[0].value) if names else "",
-        "not_after_ns": round(end.timestamp()) * 10**9,
-    }
 
 
 class CertificateWatch(Periodic):
@@ -70,6 +53,8 @@ class CertificateWatch(Periodic):
         self.model = model
         self.bus = bus
         self._told: dict[str, float] = {}
+        self.first_not_after_ns = 0
+        """When the first of the two expires (UTC ns; 0 until read, or when one cannot be)."""
 
     def start(self) -> None:
         self.check()
@@ -83,6 +68,8 @@ class CertificateWatch(Periodic):
         now_ns = time.time_ns() if now_ns is None else now_ns
         found = {which: read_certificate(path) for which, path in self.files.items()}
         self.model.put("certificates", found)
+        ends = [c.get("not_after_ns", 0) for c in found.values()]
+        self.first_not_after_ns = min(ends) if all(ends) else 0
         for which, cert in found.items():
             if "error" in cert:
                 self._tell(which, logging.ERROR, f"{cert['path']}: {cert['error']}", cert)

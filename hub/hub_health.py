@@ -1,6 +1,8 @@
 """The hub's own health, in the same typed shape as a node's (`NodeHealth`, node ``hub``):
-its machine (CPU, memory, the recording disk's free space, temperature), in the read model as
-``hub_health`` and recorded on ``/hub/health`` about once a second."""
+its machine (CPU, memory, the recording disk's free space, temperature) and, with TLS, when the
+first of its certificate and the site CA expires; in the read model as ``hub_health`` and
+recorded on ``/hub/health`` about once a second. A partition hub's reaches the main hub with
+its report (``hub/<name>``)."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from edge.cdr import encode
 from edge.host_metrics import HostMetricsReader
 from edge.keys import HUB
 from edge.messages import NODE_HEALTH_TYPE, NodeHealth, TimeSyncStatus
+from hub.certificates import CertificateWatch
 from hub.periodic import Periodic
 from hub.read_model import ReadModel
 from hub.recorder import Recorder
@@ -28,10 +31,12 @@ class HubHealth(Periodic):
         recorder: Recorder,
         period_s: float = 1.0,
         node: str = HUB,
+        certificates: CertificateWatch | None = None,
     ) -> None:
         """`node`: who this health is of (a partition hub's is ``hub/<name>``)."""
         super().__init__("hub-health", period_s)
         self.node = node
+        self.certificates = certificates
         self.model = model
         self.recorder = recorder
         self.host = HostMetricsReader({"data": data_dir})
@@ -47,6 +52,9 @@ class HubHealth(Periodic):
             host=self.host.read(),
             streams=(),
             clock=TimeSyncStatus.unknown(),
+            certificate_not_after_ns=(
+                self.certificates.first_not_after_ns if self.certificates is not None else 0
+            ),
         )
 
     def start(self) -> None:

@@ -234,6 +234,13 @@ def _health(gauge: Any, node: str, h: NodeHealth) -> None:
             float(d.total_bytes),
             role=d.role,
         )
+    if h.certificate_not_after_ns > 0:
+        gauge(
+            "fleetdaq_node_certificate_expiry_timestamp_seconds",
+            "When the first of the certificate it connects with and the site CA expires.",
+            node,
+            h.certificate_not_after_ns / 1e9,
+        )
     if h.streams:
         gauge(
             "fleetdaq_node_spool_bytes",

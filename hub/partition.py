@@ -264,9 +264,13 @@ class PartitionRuntime:
                 else "hub.snapshot.enabled"
             ),
         )
-        self.hub_health = HubHealth(
-            self.data_dir, self.model, self.recorder, node=partition_event_node(partition)
+        certificates = (
+            CertificateWatch(site, self.model, self.bus, partition) if site.security.tls else None
         )
+        self.hub_health = HubHealth(
+            self.data_dir, self.model, self.recorder, node=partition_event_node(partition),
+            certificates=certificates,
+        )  # fmt: skip
         self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
         self.status = StatusService(
             self.router,
@@ -286,11 +290,7 @@ class PartitionRuntime:
                 self.nodes,
                 self.hub_health,
                 self.report,  # before the certificates: their warning goes to the main hub
-                *(
-                    [CertificateWatch(site, self.model, self.bus, partition)]
-                    if site.security.tls
-                    else []
-                ),
+                *([certificates] if certificates is not None else []),
                 self.recorder_requests,
                 self.status,
             ]

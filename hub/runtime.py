@@ -110,9 +110,11 @@ class HubRuntime:
         )
         self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
         self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
-        self.hub_health = HubHealth(self.data_dir, self.model, self.recorder)
         self.certificates = (
             CertificateWatch(site, self.model, self.bus) if site.security.tls else None
+        )
+        self.hub_health = HubHealth(
+            self.data_dir, self.model, self.recorder, certificates=self.certificates
         )
         notify = site.hub.notify
         outbox = Path(notify.outbox_dir) if notify.outbox_dir else self.data_dir / "outbox"

@@ -3,6 +3,7 @@ acquisition time) and over time (delays), the journal, operators' requests, the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -367,6 +368,8 @@ def test_the_alarm_names_the_site_file_knows_are_the_ones_the_hub_builds():
     assert alarm_names(demo) == {d.name for d in build_definitions(demo)}
     parts = parse_config(PARTITIONED, "p.yaml")
     assert alarm_names(parts) == {d.name for d in build_definitions(parts)}
+    tls = parse_config(PARTITIONED_TLS, "p.yaml")
+    assert alarm_names(tls) == {d.name for d in build_definitions(tls)}
 
 
 PARTITIONED = """\
@@ -379,6 +382,58 @@ nodes:
   wec: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
   cell: {streams: {t8: {driver: wave_sim, rate_hz: 100, channels: [{name: a}]}}}
 """
+
+
+PARTITIONED_TLS = (
+    PARTITIONED.replace("tcp/", "tls/").replace("hub:\n", "hub:\n  listen: [tls/127.0.0.1:7447]\n")
+    + "security: {tls: true}\n"
+)
+
+
+def test_each_nodes_certificate_is_watched_from_its_health():
+    """With TLS, `certificate_expiring/<node>` and `/hub/<P>` (a partition hub's machine) from
+    when the first of its pair and the CA ends, as its health says: days left as the value.
+    A stale health still counts (a node whose pair expired cannot connect to say so); none
+    without TLS, nothing to judge from a node that cannot tell (0) or was never heard."""
+    from hub.alarms.supervisor import _machine, _node_check
+    from hub.read_model import HubView, NodeView
+
+    plain = {d.name for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
+    assert not {n for n in plain if n.startswith("certificate_expiring")}
+    defs = {d.name: d for d in build_definitions(parse_config(PARTITIONED_TLS, "p.yaml"))}
+    names = {n for n in defs if n.startswith("certificate_expiring/")}
+    assert names == {f"certificate_expiring/{n}" for n in ("hub", "wec", "cell", "hub/bay2")}
+    wec = defs["certificate_expiring/wec"]
+    assert (wec.kind, wec.severity, wec.threshold, wec.unit) == ("node", "major", 30.0, "days")
+    assert "fleetdaq pki issue wec --force" in wec.description
+    now = time.time_ns()
+    day = 86_400 * 10**9
+
+    def ends_in(node: str, days: float, heard_s_ago: float = 1.0) -> NodeView:
+        h = dataclasses.replace(
+            _machine_health(node, 40.0, 90), time_ns=now - round(heard_s_ago * 1e9),
+            certificate_not_after_ns=now + round(days * day) if days else 0,
+        )  # fmt: skip
+        return NodeView(node, True, h, h.time_ns)
+
+    view = HubView(
+        site="p", time_ns=now,
+        nodes=(ends_in("wec", 10), ends_in("cell", 0)),
+        partition_hubs=(ends_in("hub/bay2", 45, heard_s_ago=3600),),
+    )  # fmt: skip
+
+    def check(name: str) -> tuple[bool, float]:
+        d = defs[name]
+        return _node_check(d, _machine(view, d.node), now)
+
+    assert check("certificate_expiring/wec") == (True, pytest.approx(10.0))
+    assert math.isnan(check("certificate_expiring/cell")[1])  # no TLS there, or unreadable
+    assert check("certificate_expiring/cell")[0] is False
+    assert check("certificate_expiring/hub/bay2") == (False, pytest.approx(45.0))
+    gone = HubView(site="p", time_ns=now, nodes=(ends_in("wec", -2, heard_s_ago=86400),))
+    assert _node_check(wec, _machine(gone, "wec"), now) == (True, pytest.approx(-2.0))
+    never = HubView(site="p", time_ns=now)
+    assert _node_check(wec, _machine(never, "wec"), now)[0] is False
 
 
 def test_each_partition_hub_is_watched_like_the_main_hub_down_disk_and_recorder():

@@ -3,8 +3,10 @@ mcap-ros2-support, and every malformed payload refused with a WireError (nothing
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
+from typing import Any
 
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -85,6 +87,7 @@ def _health() -> NodeHealth:
             ),
         ),
         clock=TimeSyncStatus.of(status),
+        certificate_not_after_ns=1_850_000_000 * 10**9,
     )
 
 
@@ -142,15 +145,28 @@ def test_the_heartbeat_matches_rosbags():
 
 
 @pytest.mark.parametrize("cls", [NodeHealth, Event])
-def test_every_truncation_is_refused(cls: type):
-    payload = (
-        encode(_health())
+def test_every_truncation_is_refused_but_an_older_form(cls: type):
+    """A payload cut anywhere is refused, except exactly where an older fleetdaq's message
+    ended (before the fields appended since, which then take their defaults): a hub reads the
+    health and events of an edge not yet upgraded, and recordings made before."""
+    msg: Any = _health() if cls is NodeHealth else make_event(1, "n", 20, "s", "t", "m", a=1)
+    older: list[Any] = (
+        [
+            dataclasses.replace(msg, outputs=(), certificate_not_after_ns=0),  # before control
+            dataclasses.replace(msg, certificate_not_after_ns=0),  # before certificate dates
+        ]
         if cls is NodeHealth
-        else encode(make_event(1, "n", 20, "s", "t", "m", a=1))
+        else [dataclasses.replace(msg, fields=())]
     )
+    payload = encode(msg)
+    read = []
     for cut in range(len(payload)):
-        with pytest.raises(WireError):
-            decode(payload[:cut], cls)
+        try:
+            read.append(decode(payload[:cut], cls))
+        except WireError:
+            continue
+    assert [encode(m) for m in read] == [encode(m) for m in older]  # (NaN is not NaN)
+    assert encode(decode(payload, cls)) == payload
     with pytest.raises(WireError, match="trailing"):
         decode(payload + b"\x00" * 4, cls)
 

@@ -168,6 +168,37 @@ def test_certificate_expiry_is_a_timestamp_per_certificate():
     samples = parsed["fleetdaq_certificate_expiry_timestamp_seconds"].samples
     assert {s.labels["certificate"]: s.value for s in samples} == ends
     assert text == reference_metrics(view, _scrape_time(text))
+    assert b"fleetdaq_node_certificate_expiry" not in text  # no node health in this view
+
+
+def test_each_node_says_when_its_certificate_expires():
+    """`fleetdaq_node_certificate_expiry_timestamp_seconds{node}` from each node's health (the
+    hub's and a partition hub's too), none for a node that cannot tell (0: no TLS)."""
+    from edge.host_metrics import HostMetricsReader
+    from edge.messages import NodeHealth, TimeSyncStatus
+    from hub.read_model import HubView, NodeView
+
+    host = HostMetricsReader({}).read()
+
+    def health(node: str, ends_s: int) -> NodeHealth:
+        clock = TimeSyncStatus.unknown()
+        return NodeHealth(1, node, "0", 1.0, host, (), clock, (), ends_s * 10**9)
+
+    view = HubView(
+        site="prom",
+        time_ns=0,
+        nodes=(NodeView("wec", True, health("wec", 1_900_000_000), 1),
+               NodeView("am", True, health("am", 0), 1)),
+        hub_health=health("hub", 2_000_000_000),
+        partition_hubs=(NodeView("hub/bay2", True, health("hub/bay2", 2_000_000_500), 1),),
+    )  # fmt: skip
+    text, _ = render_metrics(view)
+    parsed = {f.name: f for f in text_string_to_metric_families(text.decode())}
+    samples = parsed["fleetdaq_node_certificate_expiry_timestamp_seconds"].samples
+    assert {s.labels["node"]: s.value for s in samples} == {
+        "wec": 1_900_000_000, "hub": 2_000_000_000, "hub/bay2": 2_000_000_500,
+    }  # fmt: skip
+    assert text == reference_metrics(view, _scrape_time(text))
     bare, _ = render_metrics(HubView(site="prom", time_ns=0))
     assert b"fleetdaq_certificate_expiry" not in bare
 

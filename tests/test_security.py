@@ -30,7 +30,7 @@ from mcap.reader import make_reader
 from edge.cdr import decode, encode
 from edge.keys import SiteKeys
 from edge.messages import CommandRecord, OutputCommand, make_event
-from edge.security import TlsFiles
+from edge.security import TlsFiles, read_certificate
 from edge.wire import BatchEncoder, encode_u64
 from edge.zenoh_session import client_config
 from fleetdaq.pki import init, issue_node, issue_operator
@@ -271,18 +271,25 @@ def test_keys_others_may_read_are_refused_at_start(site: Site, tmp_path: Path):
 def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
     site: Site, tmp_path: Path
 ):
-    """The site's 10-year CA and 825-day hub pair: watched, no alarm. A site whose CA (and so
-    its hub's pair) ends in 10 days: ``certificate_expiring/hub`` is active with the days
-    left, and a WARNING event names the file and how to rotate."""
+    """The site's 10-year CA and 825-day pairs: watched, no alarm; each edge's health says
+    when its pair ends. A site whose CA (and so every pair) ends in 10 days:
+    ``certificate_expiring/hub`` and ``certificate_expiring/wec`` (from the edge's health) are
+    active with the days left, and WARNING events (the hub's, the edge's) name the file and how
+    to rotate."""
     view = site.hub_view()
     assert view["certificates"]["hub"]["cn"] == "hub"
     assert view["certificates"]["ca"]["not_after_ns"] > time.time_ns() + 3000 * 86_400e9
-    (alarm,) = [a for a in view["alarms"] if a["name"] == "certificate_expiring/hub"]
-    assert not alarm["active"]
+    for name in ("certificate_expiring/hub", "certificate_expiring/wec"):
+        (alarm,) = [a for a in view["alarms"] if a["name"] == name]
+        assert not alarm["active"]
+    wec = read_certificate(site.pki / "nodes/wec.crt")["not_after_ns"]
+    (node,) = [n for n in view["nodes"] if n["node"] == "wec"]
+    assert node["health"]["certificate_not_after_ns"] == wec  # before the CA's, so its own
 
     pki = tmp_path / "pki"
     init(pki, "soon", ["127.0.0.1"], days=10)
     issue_operator(pki, "bob", "view")
+    issue_node(pki, "wec")  # never past the CA: 10 days too
     port = free_port()
     cfg = tmp_path / "site.yaml"
     cfg.write_text(
@@ -291,28 +298,42 @@ def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
     )  # fmt: skip
     soon = Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys("soon"), [])
     hub = Proc(["hub", "--config", str(cfg), "--data", str(soon.data)], tmp_path / "hub.log")
+    edge = None
     try:
         wait_for_port(port)
+        edge = Proc(
+            ["edge", "--config", str(cfg), "--node", "wec", "--spool", str(tmp_path / "sp")],
+            tmp_path / "wec.log",
+        )
 
-        def expiring() -> dict[str, Any] | None:
+        def expiring(name: str) -> dict[str, Any] | None:
             v = soon.try_view()
             alarms = [a for a in (v or {}).get("alarms", []) if a["active"]]
-            return next((a for a in alarms if a["name"] == "certificate_expiring/hub"), None)
+            return next((a for a in alarms if a["name"] == name), None)
 
-        wait_until(lambda: expiring() is not None, 30, "certificate_expiring/hub raised")
-        alarm = expiring()
-        assert alarm is not None
-        assert 9.0 < alarm["value"] <= 10.0, alarm
-        assert alarm["unit"] == "days"
-        assert alarm["severity"] == "major"
+        for name in ("certificate_expiring/hub", "certificate_expiring/wec"):
+            wait_until(lambda n=name: expiring(n) is not None, 30, f"{name} raised")
+            alarm = expiring(name)
+            assert alarm is not None
+            assert 9.0 < alarm["value"] <= 10.0, alarm
+            assert alarm["unit"] == "days"
+            assert alarm["severity"] == "major"
         events = [e for e in soon.hub_view()["recent_events"] if e["tag"] == "certificate_expiring"]
-        which = {kv["value"] for e in events for kv in e["fields"] if kv["key"] == "which"}
-        assert which == {"hub", "ca"}, events
+        which = {
+            (e["node"], kv["value"]) for e in events for kv in e["fields"] if kv["key"] == "which"
+        }
+        assert which == {("hub", "hub"), ("hub", "ca"), ("wec", "ca")}, events
         assert all(e["level"] == logging.WARNING for e in events)
         assert all("fleetdaq pki init --force" in e["message"] for e in events)
         assert str(pki / "hub.crt") in " ".join(e["message"] for e in events)
+        (said,) = [e for e in events if e["node"] == "wec"]
+        assert "the hub refuses this node" in said["message"]
+        assert str(pki / "ca.crt") in said["message"]
+        assert edge.terminate(30) == 0, edge.output()[-3000:]
         assert hub.terminate(30) == 0, hub.output()[-3000:]
     finally:
+        if edge is not None:
+            edge.kill()
         hub.kill()
 
 

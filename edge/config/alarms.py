@@ -282,8 +282,10 @@ class UniversalAlarms(Strict):
     certificate_expiring: UniversalRule | Literal[False] = UniversalRule(
         severity="major", threshold=30
     )
-    """With security.tls: the hub's certificate or the site CA expires within `threshold`
-    days (`hub.certificates`)."""
+    """With security.tls: a certificate a link depends on expires within `threshold` days:
+    ``certificate_expiring/hub`` the hub's own or the site CA (`hub.certificates`),
+    ``certificate_expiring/<node>`` a node's (from its health), ``certificate_expiring/hub/<P>``
+    partition hub P's (from its report)."""
 
 
 def alarm_names(site: Any) -> set[str]:
@@ -305,11 +307,13 @@ def alarm_names(site: Any) -> set[str]:
         names.add("recorder/hub")
     if u.notifications_failing and site.hub.notify.groups:
         names.add("notifications_failing/hub")
-    if u.certificate_expiring and site.security.tls:
-        names.add("certificate_expiring/hub")
+    certificates = bool(u.certificate_expiring and site.security.tls)
+    if certificates:
+        names |= {"certificate_expiring/hub", *(f"certificate_expiring/{n}" for n in site.nodes)}
     for p in site.hub.partitions:  # each partition hub, watched from the main hub
         for kind, on in (("node_down", u.node_down), ("disk_nearly_full", u.disk_nearly_full),
-                         ("recorder", u.recorder)):  # fmt: skip
+                         ("recorder", u.recorder),
+                         ("certificate_expiring", certificates)):  # fmt: skip
             if on:
                 names.add(f"{kind}/hub/{p}")
     for name, spec in site.alarms.items():

@@ -25,9 +25,9 @@ class AlarmDef:
     check: str
     """What is checked: "above", "below", "fault" (channel); "stale", "rate", "gaps",
     "invalid", "backlog" (stream); "down", "cpu", "memory", "disk", "temperature", "spool",
-    "unacked_age", "clock_unlocked", "offset" (node); "hub_disk", "write_errors",
+    "unacked_age", "clock_unlocked", "offset", "certificate" (node); "hub_disk", "write_errors",
     "notifications_failing", "recorder_stopped", "recorder", "partition_down",
-    "partition_disk", "partition_recorder" (hub)."""
+    "partition_disk", "partition_recorder", "certificate_expiring" (hub)."""
     condition: str
     """For people: "above 400 degC", "no batch for 5 s", ..."""
     severity: Severity
@@ -260,6 +260,8 @@ def _universal(site: SiteConfig) -> list[AlarmDef]:
             )
         )  # fmt: skip
     out += _partition_hubs(site, rule(u.node_down), rule(u.disk_nearly_full), rule(u.recorder))
+    if (r := rule(u.certificate_expiring)) is not None and site.security.tls:
+        out += _certificates(site, r)
     if (r := rule(u.notifications_failing)) is not None and site.hub.notify.groups:
         after = r.after_s if r.after_s is not None else 600.0
         out.append(
@@ -269,15 +271,43 @@ def _universal(site: SiteConfig) -> list[AlarmDef]:
                 threshold=after, latch=r.latch, universal=True,
             )
         )  # fmt: skip
-    if (r := rule(u.certificate_expiring)) is not None and site.security.tls:
-        days = r.threshold if r.threshold is not None else 30.0
+    return out
+
+
+def _certificates(site: SiteConfig, r: UniversalRule) -> list[AlarmDef]:
+    """``certificate_expiring/hub`` (this hub's pair or the site CA, `hub.certificates`),
+    ``/<node>`` and ``/hub/<P>`` (the first of a node's or partition hub's pair and the CA,
+    from its health): the value is the days left."""
+    days = r.threshold if r.threshold is not None else 30.0
+    out = [
+        AlarmDef(
+            "certificate_expiring/hub", "hub", "certificate_expiring",
+            f"the hub's certificate or the site CA expires within {days:g} days", r.severity,
+            node="hub", unit="days", threshold=days, latch=r.latch, universal=True,
+            description="Past it no edge connects (they spool). Rotate: fleetdaq pki init "
+            "--force, re-issue every pair, copy them out, restart hub and edges.",
+        )
+    ]  # fmt: skip
+    for node in site.nodes:
         out.append(
             AlarmDef(
-                "certificate_expiring/hub", "hub", "certificate_expiring",
-                f"the hub's certificate or the site CA expires within {days:g} days", r.severity,
-                node="hub", unit="days", threshold=days, latch=r.latch, universal=True,
-                description="Past it no edge connects (they spool). Rotate: fleetdaq pki init "
-                "--force, re-issue every pair, copy them out, restart hub and edges.",
+                f"certificate_expiring/{node}", "node", "certificate",
+                f"{node}: its certificate or the site CA expires within {days:g} days",
+                r.severity, node=node, unit="days", threshold=days, latch=r.latch,
+                universal=True,
+                description=f"Past it the hub refuses {node} (it spools). Issue a new pair "
+                f"(fleetdaq pki issue {node} --force), copy it to the node, restart its edge.",
+            )
+        )  # fmt: skip
+    for p in site.hub.partitions:
+        out.append(
+            AlarmDef(
+                f"certificate_expiring/hub/{p}", "node", "certificate",
+                f"partition hub {p}: its certificate or the site CA expires within {days:g} days",
+                r.severity, node=f"hub/{p}", unit="days", threshold=days, latch=r.latch,
+                universal=True,
+                description=f"Past it partition {p}'s nodes no longer reach the main hub. Issue "
+                f"a new pair (fleetdaq pki issue {p} --partition --force), copy it, restart it.",
             )
         )  # fmt: skip
     return out

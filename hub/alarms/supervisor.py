@@ -478,6 +478,14 @@ def _node_check(d: AlarmDef, node: NodeView | None, now: int) -> tuple[bool, flo
     if d.check == "down":
         return not (node is not None and node.alive), math.nan
     health = node.health if node is not None else None
+    if d.check == "certificate" and health is not None:
+        # From its last health, fresh or not: a node whose pair has expired cannot connect
+        # to say so, and this alarm says why it is down. 0: no TLS, or it cannot tell.
+        ends = health.certificate_not_after_ns
+        if ends <= 0:
+            return False, math.nan
+        days = (ends - now) / 86_400e9
+        return days < d.threshold, days
     if health is None or now - health.time_ns > HEALTH_FRESH_NS:
         return False, math.nan
     host = health.host

@@ -153,6 +153,8 @@ def _software(s: _Status, h: NodeHealth) -> None:
     s.value("version", h.version)
     s.value("uptime", _duration(h.uptime_s))
     s.value("health time", iso(h.time_ns))
+    if h.certificate_not_after_ns > 0:  # with TLS: the first of its pair and the CA
+        s.value("certificate expires", iso(h.certificate_not_after_ns))
 
 
 def _host(s: _Status, host: HostMetrics, disk_role: str) -> None:
