@@ -724,7 +724,7 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
 
     import zenoh
 
-    from edge.security import TlsFiles
+    from edge.security import TlsFiles, read_certificate
     from edge.zenoh_session import client_config
     from fleetdaq.pki import init, issue_node, issue_operator, issue_partition
 
@@ -809,6 +809,21 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
         assert r.returncode in (0, 1), r.stdout + r.stderr
         assert r.stdout.startswith("partition hub bay2 · site sparts"), r.stdout
         assert re.search(r"^cell-a/\w+ +- ", r.stdout, re.M), r.stdout  # its own slice
+        # When bay2's own pair ends, from its health as the main hub hears it (what
+        # certificate_expiring/hub/bay2 watches).
+        bay2_ends = read_certificate(pki / "partitions" / "bay2.crt")["not_after_ns"]
+
+        def bay2_health() -> dict[str, Any]:
+            r = ann("status", "--json")
+            view = json.loads(r.stdout) if r.returncode in (0, 1) else {}
+            hubs = [h for h in view.get("partition_hubs", ()) if h["node"] == "hub/bay2"]
+            return (hubs[0]["health"] or {}) if hubs else {}
+
+        wait_until(
+            lambda: bay2_health().get("certificate_not_after_ns") == bay2_ends,
+            30,
+            "bay2's health saying when its certificate ends",
+        )
         main_log = tmp_path / "main" / "events.log"
         wait_logged(
             main_log,
