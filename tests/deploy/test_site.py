@@ -7,7 +7,7 @@ switches off ``fleetdaq_manage_services``, and with it the health gate).
 
 Checked: the first run installs fleetdaq, the site file, the certificates (owners, modes, each
 host only its own pair, never the CA's key; the partition hub bay2's own pair, never the main
-hub's), the units and linuxptp's configurations; a second
+hub's, whose pair a run takes away from it), the units and linuxptp's configurations; a second
 run changes nothing (PLAY RECAP); every unit it wrote passes ``systemd-analyze verify`` with
 nothing printed; an inventory that does not fit the site file stops the run before any host
 is touched."""
@@ -191,6 +191,12 @@ def deploy(tmp_path_factory: pytest.TempPathFactory, wheelhouse: Path) -> Iterat
     fleetdaq("pki", "issue", "bay2", "--partition", "--hub-name", "10.233.0.11", "--dir", str(pki))
     lab = Lab(root / "hosts", ["controller", "bay2", "wec", "shore-pi"])
     try:
+        # bay2 as a site upgraded from the time every hub had the main hub's pair: the run
+        # takes it away (the first test sees only partitions/bay2.key there).
+        stale = lab.hosts[1].fs / "etc/fleetdaq/pki"
+        stale.mkdir(parents=True)
+        for name in ("hub.crt", "hub.key"):
+            (stale / name).write_bytes((pki / name).read_bytes())
         inventory = write_inventory(
             lab, root, wheelhouse, root / "inventory.yml", **{"shore-pi": "shore"}
         )
