@@ -12,7 +12,6 @@ in the stream loops, so they hold whether or not the hub is there.
 
 from __future__ import annotations
 
-import datetime as dt
 import logging
 import threading
 import time
@@ -24,6 +23,7 @@ import zenoh
 
 from edge import __version__
 from edge.cdr import encode
+from edge.certificate_dates import check_dates
 from edge.config.site import SiteConfig
 from edge.display import DisplayLoop, create_displays
 from edge.drivers.base import DriverHealth
@@ -272,43 +272,18 @@ class EdgeAgent:
         )
 
     def _check_certificates(self, events: EventPublisher) -> None:
-        """With TLS: when the first of this node's certificate and the site CA expires goes
-        into its health, where the hub watches it (``certificate_expiring/<node>``). One that
-        ends within the alarm's days, or has ended, is said now too: past it the hub refuses
-        this node (it spools until a new pair is here)."""
+        """With TLS: when its pair or the CA ends into its health; what is wrong with their
+        dates as events (`edge.certificate_dates`)."""
         if self.tls is None:
             return
-        mine, ca = read_certificate(self.tls.cert), read_certificate(self.tls.ca)
-        for c in (mine, ca):
-            if "error" in c:
-                events.emit(
-                    logging.WARNING, "certificates", "certificate_unreadable",
-                    f"{c['path']}: {c['error']}; the hub cannot warn before it expires",
-                    path=c["path"],
-                )  # fmt: skip
-                return
-        first = ca if int(ca["not_after_ns"]) <= int(mine["not_after_ns"]) else mine
-        self.certificate_not_after_ns = int(first["not_after_ns"])
         rule = self.site.hub.universal_alarms.certificate_expiring
         warn = float(rule.threshold) if rule and rule.threshold is not None else 30.0
-        days = (self.certificate_not_after_ns - time.time_ns()) / 86_400e9
-        if days >= warn:
-            return
-        until = dt.datetime.fromtimestamp(self.certificate_not_after_ns / 1e9, dt.UTC)
-        when = f"expired on {until:%Y-%m-%d %H:%M}Z" if days <= 0 else (
-            f"expires on {until:%Y-%m-%d %H:%M}Z, in {days:.1f} days"
-        )  # fmt: skip
-        if first is ca:
-            what, fix = "the site CA", "rotate every pair: fleetdaq pki init --force, then issue"
-        else:
-            what, fix = f"node {self.node}'s certificate", f"fleetdaq pki issue {self.node} --force"
-        events.emit(
-            logging.ERROR if days <= 0 else logging.WARNING, "certificates",
-            "certificate_expiring",
-            f"{what} {first['path']} {when}: past it the hub refuses this node, which spools "
-            f"until a new pair is here ({fix}; copy it here; restart)",
-            which="ca" if first is ca else "node", path=first["path"], days_left=round(days, 2),
-        )  # fmt: skip
+        mine, ca = read_certificate(self.tls.cert), read_certificate(self.tls.ca)
+        self.certificate_not_after_ns, notes = check_dates(
+            self.node, mine, ca, time.time_ns(), warn
+        )
+        for n in notes:
+            events.emit(n.level, "certificates", n.tag, n.message, **n.fields)
 
     @staticmethod
     def _stream_health(loop: StreamLoop, now_ns: int) -> StreamHealth:

@@ -105,7 +105,8 @@ def operator_tls(pki_dir: Path) -> TlsFiles:
 
 
 def read_certificate(path: Path) -> dict[str, Any]:
-    """``{"path", "cn", "not_after_ns"}`` of one PEM certificate, or ``{"path", "error"}``."""
+    """``{"path", "cn", "not_before_ns", "not_after_ns"}`` of one PEM certificate (UTC ns), or
+    ``{"path", "error"}``."""
     try:
         from cryptography import x509
         from cryptography.x509.oid import NameOID
@@ -116,9 +117,9 @@ def read_certificate(path: Path) -> dict[str, Any]:
     except (OSError, ValueError) as err:
         return {"path": str(path), "error": f"cannot read it: {err}"}
     names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-    end = cert.not_valid_after_utc
     return {
         "path": str(path),
         "cn": str(names[0].value) if names else "",
-        "not_after_ns": round(end.timestamp()) * 10**9,
+        "not_before_ns": round(cert.not_valid_before_utc.timestamp()) * 10**9,
+        "not_after_ns": round(cert.not_valid_after_utc.timestamp()) * 10**9,
     }
