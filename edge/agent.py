@@ -23,7 +23,7 @@ import zenoh
 
 from edge import __version__
 from edge.cdr import encode
-from edge.certificate_dates import check_dates
+from edge.certificate_dates import check_dates, warn_days
 from edge.config.site import SiteConfig
 from edge.display import DisplayLoop, create_displays
 from edge.drivers.base import DriverHealth
@@ -276,11 +276,9 @@ class EdgeAgent:
         dates as events (`edge.certificate_dates`)."""
         if self.tls is None:
             return
-        rule = self.site.hub.universal_alarms.certificate_expiring
-        warn = float(rule.threshold) if rule and rule.threshold is not None else 30.0
         mine, ca = read_certificate(self.tls.cert), read_certificate(self.tls.ca)
         self.certificate_not_after_ns, notes = check_dates(
-            self.node, mine, ca, time.time_ns(), warn
+            self.node, mine, ca, time.time_ns(), warn_days(self.site)
         )
         for n in notes:
             events.emit(n.level, "certificates", n.tag, n.message, **n.fields)

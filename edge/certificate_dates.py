@@ -15,9 +15,14 @@ from __future__ import annotations
 import datetime as dt
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from edge.config.site import SiteConfig
 
 DAY_NS = 86_400 * 10**9
+WARN_DAYS = 30.0
+"""Warn this many days before, unless ``certificate_expiring``'s `threshold` says otherwise."""
 
 
 @dataclass(frozen=True)
@@ -30,8 +35,22 @@ class Note:
     fields: dict[str, object] = field(default_factory=dict)
 
 
+def warn_days(site: SiteConfig) -> float:
+    """How many days before a certificate ends the node and the hub warn (the alarms' days)."""
+    rule = site.hub.universal_alarms.certificate_expiring
+    return float(rule.threshold) if rule and rule.threshold is not None else WARN_DAYS
+
+
 def _utc(ns: int) -> str:
     return f"{dt.datetime.fromtimestamp(ns / 1e9, dt.UTC):%Y-%m-%d %H:%M}Z"
+
+
+def when_it_ends(not_after_ns: int, now_ns: int) -> str:
+    """``expired on <UTC>`` or ``expires on <UTC>, in N days`` (the hub's warnings say it too)."""
+    days = (not_after_ns - now_ns) / DAY_NS
+    if days <= 0:
+        return f"expired on {_utc(not_after_ns)}"
+    return f"expires on {_utc(not_after_ns)}, in {days:.1f} days"
 
 
 def check_dates(
@@ -62,11 +81,7 @@ def check_dates(
     ends = int(first["not_after_ns"])
     days = (ends - now_ns) / DAY_NS
     if days < warn_days:
-        when = (
-            f"expired on {_utc(ends)}"
-            if days <= 0
-            else f"expires on {_utc(ends)}, in {days:.1f} days"
-        )
+        when = when_it_ends(ends, now_ns)
         if first is ca:
             what, fix = "the site CA", "rotate every pair: fleetdaq pki init --force, then issue"
         else:

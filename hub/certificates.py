@@ -13,12 +13,12 @@ the main hub's events.log with its others).
 
 from __future__ import annotations
 
-import datetime as dt
 import logging
 import time
 from pathlib import Path
 from typing import Any
 
+from edge.certificate_dates import DAY_NS, warn_days, when_it_ends
 from edge.config.site import SiteConfig
 from edge.security import read_certificate
 from hub.bus import EventBus
@@ -27,8 +27,6 @@ from hub.read_model import ReadModel
 
 CHECK_PERIOD_S = 3600.0
 TELL_EVERY_S = 86400.0
-WARN_DAYS = 30.0
-DAY_NS = 86_400 * 10**9
 
 
 class CertificateWatch(Periodic):
@@ -48,8 +46,7 @@ class CertificateWatch(Periodic):
         pki = Path(site.security.pki_dir)
         own = pki / "hub.crt" if partition is None else pki / "partitions" / f"{partition}.crt"
         self.files = {"hub": own, "ca": pki / "ca.crt"}
-        rule = site.hub.universal_alarms.certificate_expiring
-        self.warn_days = float(rule.threshold) if rule and rule.threshold is not None else WARN_DAYS
+        self.warn_days = warn_days(site)
         self.model = model
         self.bus = bus
         self._told: dict[str, float] = {}
@@ -79,12 +76,7 @@ class CertificateWatch(Periodic):
                 what = (
                     "the site CA" if which == "ca" else f"this hub's certificate (CN {cert['cn']})"
                 )
-                until = dt.datetime.fromtimestamp(cert["not_after_ns"] / 1e9, dt.UTC)
-                when = (
-                    f"expired on {until:%Y-%m-%d %H:%M}Z"
-                    if days <= 0
-                    else f"expires on {until:%Y-%m-%d %H:%M}Z, in {days:.1f} days"
-                )
+                when = when_it_ends(cert["not_after_ns"], now_ns)
                 self._tell(
                     which,
                     logging.WARNING if days > 0 else logging.ERROR,
