@@ -54,11 +54,11 @@ def when_it_ends(not_after_ns: int, now_ns: int) -> str:
 
 
 def check_dates(
-    node: str, mine: dict[str, Any], ca: dict[str, Any], now_ns: int, warn_days: float
+    node: str, mine: dict[str, Any], ca: dict[str, Any], now_ns: int, days_before: float
 ) -> tuple[int, list[Note]]:
     """When the first of node `node`'s certificate (`mine`) and the CA ends (UTC ns; 0 when one
-    could not be read), and what to say now. `mine` and `ca` are what
-    `edge.security.read_certificate` returns."""
+    could not be read), and what to say now: an end within `days_before` days is warned of.
+    `mine` and `ca` are what `edge.security.read_certificate` returns."""
     for c in (mine, ca):
         if "error" in c:
             text = f"{c['path']}: {c['error']}; the hub cannot warn before it expires"
@@ -80,7 +80,7 @@ def check_dates(
     first = ca if ca["not_after_ns"] <= mine["not_after_ns"] else mine
     ends = int(first["not_after_ns"])
     days = (ends - now_ns) / DAY_NS
-    if days < warn_days:
+    if days < days_before:
         when = when_it_ends(ends, now_ns)
         if first is ca:
             what, fix = "the site CA", "rotate every pair: fleetdaq pki init --force, then issue"
