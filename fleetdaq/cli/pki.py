@@ -1,10 +1,13 @@
 """``fleetdaq pki``: the site's certificates — `init` (the site CA and the hub's router
 certificate), `issue NODE`, `issue NAME --partition` (a partition hub's router) and
-`issue --operator NAME --role view|control`, `list`."""
+`issue --operator NAME --role view|control`, `list`, and `check` (the dates and issuer of
+the certificates one machine holds; `fleetdaq fleet status` runs it on every host)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -178,3 +181,56 @@ def acl(config: str) -> None:
     from hub.acl import access_control
 
     click.echo(json.dumps(access_control(load_site(config)), indent=2))
+
+
+@pki.command("check")
+@click.option("--config", "config", required=True, type=click.Path(), help="Site file.")
+@click.option("--node", "nodes", multiple=True, help="A node whose pair this machine holds.")
+@click.option("--hub", is_flag=True, help="The main hub's pair (hub.crt).")
+@click.option("--partition", "partitions", multiple=True, help="A partition hub's own pair.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object.")
+def check_certs(
+    config: str, nodes: tuple[str, ...], hub: bool, partitions: tuple[str, ...], as_json: bool
+) -> None:
+    """The certificates this machine connects with (security.pki_dir): the site CA and the
+    pairs named (every pair in the folder when none is), each checked for its dates (ending
+    within certificate_expiring's days, ended, not started by this clock) and its issuer (the
+    CA beside it). Exit 0 all fine, 1 something to fix or not readable by this user, 2 bad
+    input."""
+    import json
+
+    from fleetdaq.certificate_check import check
+
+    site = load_site(config)
+    for n in nodes:
+        if n not in site.nodes:
+            fail(f"pki check: the site file {config} has no node {n!r}", 2)
+    for p in partitions:
+        if p not in site.hub.partitions:
+            fail(f"pki check: the site file {config} has no partition hub {p!r}", 2)
+    found = check(site, nodes, hub, partitions)
+    if as_json:
+        click.echo(json.dumps(found))
+    elif not found["tls"]:
+        click.echo(f"security.tls is off in {config}: the links use no certificates")
+    else:
+        _print_checked(found)
+    sys.exit(1 if found.get("problems") or found.get("unchecked") else 0)
+
+
+def _print_checked(found: dict[str, Any]) -> None:
+    import datetime as dt
+
+    click.echo(f"{found['pki_dir']} (warning {found['warn_days']:g} days before the end)")
+    for c in found["certificates"]:
+        until = (
+            f"until {dt.datetime.fromtimestamp(c['not_after_ns'] / 1e9, dt.UTC):%Y-%m-%d} "
+            f"({c['days_left']:.0f} d)"
+            if c["not_after_ns"]
+            else "-"
+        )
+        click.echo(f"{c['which']:20} {c['state']:13} {until:26} {c['path']}")
+    for p in found["problems"]:
+        click.echo(f"✗ {p}")
+    for p in found["unchecked"]:
+        click.echo(f"? {p}")

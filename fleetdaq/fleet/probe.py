@@ -1,7 +1,8 @@
 """One host's status over one SSH connection: its facts (`facts`), ``fleetdaq --version``,
-``fleetdaq ptp status --json`` and, on the hub, ``fleetdaq rec status --json`` — each run by
-the host's own fleetdaq, so what is reported is what the host itself sees. A host whose answer
-is partial (fleetdaq missing, a command timing out, the link dropping) says what is missing.
+``fleetdaq ptp status --json``, ``fleetdaq pki check --json`` and, on the hub,
+``fleetdaq rec status --json`` — each run by the host's own fleetdaq, so what is reported is
+what the host itself sees. A host whose answer is partial (fleetdaq missing, a command timing
+out, the link dropping) says what is missing.
 """
 
 from __future__ import annotations
@@ -19,7 +20,13 @@ from fleetdaq.fleet.facts import Facts, facts_script, parse_facts
 from fleetdaq.fleet.inventory import Host
 from fleetdaq.fleet.layout import HostLayout
 from fleetdaq.fleet.ssh import Connection, SshOptions, connect
-from fleetdaq.fleet.status import MIN_FREE_FRACTION, HostStatus, RecorderView, TimeView
+from fleetdaq.fleet.status import (
+    MIN_FREE_FRACTION,
+    CertificatesView,
+    HostStatus,
+    RecorderView,
+    TimeView,
+)
 
 
 def _last_line(text: str) -> str:
@@ -54,6 +61,30 @@ def parse_time(stdout: str, expected: bool) -> TimeView:
         message=message,
         expected=expected,
     )
+
+
+def parse_certificates(stdout: str) -> CertificatesView:
+    """``fleetdaq pki check --json`` -> `CertificatesView`. Raises ValueError on anything else."""
+    from fleetdaq.certificate_check import STATES
+
+    try:
+        d: dict[str, Any] = json.loads(stdout)
+        if not d["tls"]:
+            return CertificatesView(tls=False)
+        now_ns, first = int(d["now_ns"]), int(d["first_not_after_ns"])
+        found = d["certificates"]
+        ca: dict[str, Any] = next((c for c in found if c["which"] == "ca"), {})
+        return CertificatesView(
+            tls=True,
+            first_not_after_ns=first,
+            days_left=round((first - now_ns) / 86_400e9, 2) if first else None,
+            ca_fingerprint=str(ca.get("fingerprint", "")),
+            worst=max((str(c["state"]) for c in found), key=STATES.index, default="ok"),
+            problems=tuple(str(p) for p in d["problems"]),
+            unchecked=tuple(str(p) for p in d.get("unchecked", ())),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise ValueError(f"not a certificate check: {err}") from err
 
 
 def parse_recorder(stdout: str) -> RecorderView:
@@ -136,6 +167,28 @@ class _Probe:
         elif not view.expected and view.level != "ok":
             self.notes.append(f"time not set up here (no PTP in the inventory): {view.state}")
 
+    def certificates(self) -> None:
+        args = [self.layout.fleetdaq, "pki", "check", "--json", "--config", self.layout.site_file]
+        if self.host.is_edge:
+            args += ["--node", self.host.node]
+        if self.host.is_hub:
+            args += (
+                ["--hub"] if self.host.partition is None else ["--partition", self.host.partition]
+            )
+        status, out, err = self.run(*args)
+        try:
+            view = parse_certificates(out)
+        except ValueError:
+            said = _last_line(err or out) or f"exit {status}"
+            if "No such command" in said:  # a fleetdaq from before `pki check`
+                self.notes.append("certificates not checked: this host's fleetdaq has no pki check")
+            else:
+                self.problems.append(f"certificates: {said}")
+            return
+        self.fields["certificates"] = view
+        self.problems.extend(f"certificate: {p}" for p in view.problems)
+        self.notes.extend(f"certificate {p}" for p in view.unchecked)
+
     def recorder(self) -> None:
         args = [self.layout.fleetdaq, "rec", "status", "--json", "--config", self.layout.site_file]
         if self.host.partition is not None:  # a partition hub's own recorder
@@ -175,6 +228,9 @@ def probe(host: Host, layout: HostLayout, options: SshOptions, timeout: float) -
                 p.version()
                 step = "fleetdaq ptp status"
                 p.time(facts.site_file)
+                if facts.site_file:
+                    step = "fleetdaq pki check"
+                    p.certificates()
                 if host.is_hub and facts.site_file:
                     step = "fleetdaq rec status"
                     p.recorder()

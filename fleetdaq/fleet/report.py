@@ -60,6 +60,18 @@ def _recorder(h: HostStatus) -> str:
     return f"{r.state} {posixpath.basename(r.current_file)} {size_text(r.current_file_bytes)}"
 
 
+def _certificates(h: HostStatus) -> Text:
+    c = h.certificates
+    if c is None:
+        return Text("-")
+    if not c.tls:
+        return Text("no TLS", style="dim")
+    days = f"{c.days_left:.0f} d" if c.days_left is not None else "?"
+    text = days if c.worst == "ok" else f"{days} {c.worst}"
+    style = {"ok": "green", "expiring": "yellow", "not_permitted": "dim"}.get(c.worst, "red")
+    return Text(text, style=style)
+
+
 def render(status: FleetStatus, console: Console) -> None:
     table = Table(box=box.SIMPLE_HEAD, pad_edge=False)
     for column in (
@@ -73,6 +85,7 @@ def render(status: FleetStatus, console: Console) -> None:
         "disk free",
         "spool",
         "recorder",
+        "certs",
     ):
         table.add_column(column)
     for h in status.hosts:
@@ -98,6 +111,7 @@ def render(status: FleetStatus, console: Console) -> None:
             _disk(h),
             size_text(spool.bytes) if spool is not None else "-",
             _recorder(h),
+            _certificates(h),
         )
     console.print(table)
     for p in status.problems:

@@ -42,6 +42,24 @@ class RecorderView:
 
 
 @dataclass(frozen=True, slots=True)
+class CertificatesView:
+    """The host's ``fleetdaq pki check --json``: the certificates it connects with."""
+
+    tls: bool
+    first_not_after_ns: int = 0
+    """When the first of them ends (UTC ns; 0 without TLS or when one cannot be read)."""
+    days_left: float | None = None
+    """Days from the host's clock to `first_not_after_ns`."""
+    ca_fingerprint: str = ""
+    """SHA-256 of the site CA it holds: every host of a site holds the same."""
+    worst: str = "ok"
+    """``ok``, or the worst state among them (`fleetdaq.certificate_check.STATES`)."""
+    problems: tuple[str, ...] = ()
+    unchecked: tuple[str, ...] = ()
+    """Certificates the SSH user may not read (not held against the host)."""
+
+
+@dataclass(frozen=True, slots=True)
 class HostStatus:
     host: str
     address: str
@@ -56,6 +74,7 @@ class HostStatus:
     time: TimeView | None = None
     dirs: tuple[DirUsage, ...] = ()
     recorder: RecorderView | None = None
+    certificates: CertificatesView | None = None
     problems: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
 
@@ -91,6 +110,7 @@ class HostStatus:
             "dirs": [asdict(d) for d in self.dirs],
             "spool_bytes": spool.bytes if spool is not None else None,
             "recorder": asdict(self.recorder) if self.recorder is not None else None,
+            "certificates": asdict(self.certificates) if self.certificates is not None else None,
             "problems": list(self.problems),
             "notes": list(self.notes),
         }
@@ -117,9 +137,18 @@ class FleetStatus:
 
 
 def fleet_problems(hosts: tuple[HostStatus, ...]) -> tuple[str, ...]:
-    """Problems of the fleet as a whole: hosts running different fleetdaq versions."""
+    """Problems of the fleet as a whole: hosts running different fleetdaq versions, hosts
+    holding different site CAs (one not copied out after a rotation: its links are refused)."""
+    out = []
     versions = {h.version for h in hosts if h.version}
     if len(versions) > 1:
         by = ", ".join(f"{h.host} {h.version}" for h in hosts if h.version)
-        return (f"hosts run different fleetdaq versions: {by}",)
-    return ()
+        out.append(f"hosts run different fleetdaq versions: {by}")
+    cas = {h.host: h.certificates.ca_fingerprint for h in hosts if h.certificates is not None}
+    if len(set(cas.values()) - {""}) > 1:
+        by = ", ".join(f"{host} {fp[:16]}" for host, fp in cas.items() if fp)
+        out.append(
+            f"hosts hold different site CAs (SHA-256): {by}; copy the site's ca.crt and "
+            "re-issued pairs to every host"
+        )
+    return tuple(out)

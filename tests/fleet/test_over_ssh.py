@@ -529,3 +529,59 @@ def test_a_hub_host_whose_hub_is_down_is_unhealthy_and_says_why(fleet: Fleet, tm
     assert problem.startswith("recorder: cannot reach the hub at tcp/127.0.0.1:"), problem
     assert hosts["pi-a"]["healthy"]
     assert hosts["edge-b"]["healthy"]
+
+
+def test_each_host_says_when_its_certificates_end_and_which_ca_it_holds(fleet: Fleet):
+    """Edges on a TLS site, each with its own PKI folder as Ansible copies it: pi-a's pair ends
+    in 10 days; edge-b still holds the CA from before a rotation the others had."""
+    from fleetdaq.pki import init, issue_node
+
+    tls_site = "/etc/fleetdaq/site-tls.yaml"
+    for sshd, node, days, ca_name in (
+        (fleet.a, "edge-a", 10, "new"),
+        (fleet.b, "edge-b", 825, "old"),
+    ):
+        pki = sshd.fs / "etc/fleetdaq/pki"
+        shutil.rmtree(pki, ignore_errors=True)
+        init(pki, f"fleettest-{ca_name}", ["127.0.0.1"])
+        issue_node(pki, node, days=days)
+        text = SITE.format(port=free_port()).replace("tcp/", "tls/")
+        text += f"security: {{tls: true, pki_dir: {pki}}}\n"
+        (sshd.fs / tls_site.lstrip("/")).write_text(text)
+    inv = fleet.inventory(
+        "certificates",
+        edges={
+            "pi-a": fleet.host(fleet.a, fleetdaq_node="edge-a", fleetdaq_site_file=tls_site),
+            "edge-b": fleet.host(fleet.b, fleetdaq_site_file=tls_site),
+        },
+    )
+    r = fleet.status(inv, "--json")
+    assert r.returncode == 1, r.stdout + r.stderr
+    out = json.loads(r.stdout)
+    hosts = _hosts(r.stdout)
+    a, b, hub = hosts["pi-a"]["certificates"], hosts["edge-b"]["certificates"], hosts["hub"]
+    assert hub["certificates"] == {
+        "tls": False, "first_not_after_ns": 0, "days_left": None, "ca_fingerprint": "",
+        "worst": "ok", "problems": [],
+    }  # fmt: skip
+    assert hub["healthy"]
+    assert a["tls"]
+    assert a["worst"] == "expiring"
+    assert 9 < a["days_left"] <= 10
+    (problem,) = hosts["pi-a"]["problems"]
+    assert problem.startswith(f"certificate: node edge-a {fleet.a.fs}/etc/fleetdaq/pki/nodes/")
+    assert "fleetdaq pki issue edge-a --force" in problem
+    assert b["worst"] == "ok"
+    assert 824 < b["days_left"] <= 825
+    assert hosts["edge-b"]["healthy"]
+    assert len({a["ca_fingerprint"], b["ca_fingerprint"]}) == 2
+    (different,) = out["problems"]
+    assert different.startswith("hosts hold different site CAs (SHA-256): pi-a ")
+    assert f"edge-b {b['ca_fingerprint'][:16]}" in different
+
+    table = fleet.status(inv)
+    assert table.returncode == 1
+    assert "certs" in table.stdout
+    assert "no TLS" in table.stdout
+    assert "expiring" in table.stdout
+    assert "✗ fleet: hosts hold different site CAs" in table.stdout
