@@ -41,7 +41,8 @@ def warn_days(site: SiteConfig) -> float:
     return float(rule.threshold) if rule and rule.threshold is not None else WARN_DAYS
 
 
-def _utc(ns: int) -> str:
+def utc_text(ns: int) -> str:
+    """UTC ns as ``2026-12-04 07:47Z``."""
     return f"{dt.datetime.fromtimestamp(ns / 1e9, dt.UTC):%Y-%m-%d %H:%M}Z"
 
 
@@ -49,8 +50,8 @@ def when_it_ends(not_after_ns: int, now_ns: int) -> str:
     """``expired on <UTC>`` or ``expires on <UTC>, in N days`` (the hub's warnings say it too)."""
     days = (not_after_ns - now_ns) / DAY_NS
     if days <= 0:
-        return f"expired on {_utc(not_after_ns)}"
-    return f"expires on {_utc(not_after_ns)}, in {days:.1f} days"
+        return f"expired on {utc_text(not_after_ns)}"
+    return f"expires on {utc_text(not_after_ns)}, in {days:.1f} days"
 
 
 def check_dates(
@@ -70,8 +71,8 @@ def check_dates(
                 Note(
                     logging.WARNING,
                     "clock_before_certificate",
-                    f"this machine's clock ({_utc(now_ns)}) is before {c['path']} starts "
-                    f"({_utc(c['not_before_ns'])}): TLS refuses the hub until the clock is set "
+                    f"this machine's clock ({utc_text(now_ns)}) is before {c['path']} starts "
+                    f"({utc_text(c['not_before_ns'])}): TLS refuses the hub until the clock is set "
                     "(PTP or NTP; a Pi without a real-time clock boots with an old date)",
                     {"path": c["path"], "not_before_ns": c["not_before_ns"]},
                 )

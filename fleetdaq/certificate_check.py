@@ -10,13 +10,12 @@ not read: they belong to the service's user, not to whoever checks.
 
 from __future__ import annotations
 
-import datetime as dt
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from edge.certificate_dates import DAY_NS, warn_days, when_it_ends
+from edge.certificate_dates import DAY_NS, utc_text, warn_days, when_it_ends
 from edge.security import read_certificate
 
 if TYPE_CHECKING:
@@ -49,10 +48,6 @@ class Checked:
     """SHA-256 of the certificate (hex): hosts holding different site CAs differ here."""
     message: str = ""
     """What is wrong and how to fix it ("" when ok)."""
-
-
-def _utc(ns: int) -> str:
-    return f"{dt.datetime.fromtimestamp(ns / 1e9, dt.UTC):%Y-%m-%d %H:%M}Z"
 
 
 def _issued_by(cert_path: Path, ca_path: Path) -> bool | None:
@@ -122,8 +117,8 @@ def judge(
     elif now_ns < base.not_before_ns:
         state, message = (
             "not_yet_valid",
-            f"starts on {_utc(base.not_before_ns)}, and this machine's clock says "
-            f"{_utc(now_ns)}: TLS refuses it until the clock is set (PTP or NTP; a Pi without "
+            f"starts on {utc_text(base.not_before_ns)}, and this machine's clock says "
+            f"{utc_text(now_ns)}: TLS refuses it until the clock is set (PTP or NTP; a Pi without "
             "a real-time clock boots with an old date)",
         )
     elif days <= 0:
