@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import threading
 import time
 from pathlib import Path
 from types import TracebackType
@@ -46,7 +45,6 @@ from edge.keys import SiteKeys
 from edge.messages import Event
 from edge.paths import default_data_dir
 from edge.systemd import Systemd
-from edge.threads import NamedThread
 from hub.bus import EventBus
 from hub.certificates import CertificateWatch
 from hub.event_log import EventLog
@@ -54,6 +52,7 @@ from hub.hub_health import HubHealth
 from hub.node_watch import NodeWatch
 from hub.partition_recorders import recorder_key
 from hub.partition_snapshots import PartitionSnapshots
+from hub.periodic import Periodic
 from hub.read_model import (
     DiskView,
     HubView,
@@ -98,9 +97,9 @@ def partition_data_dir(site: SiteConfig, name: str, override: Path | None = None
 # --- on a partition hub ------------------------------------------------------------------------
 
 
-class PartitionReport:
+class PartitionReport(Periodic):
     """A partition hub's presence on the mesh: its liveliness token, its report about once a
-    second and its own events, for the main hub's `PartitionWatch`."""
+    second (the first at start) and its own events, for the main hub's `PartitionWatch`."""
 
     name = "partition-report"
 
@@ -113,10 +112,10 @@ class PartitionReport:
         bus: EventBus,
         period_s: float = REPORT_PERIOD_S,
     ) -> None:
+        super().__init__("partition-report", period_s)
         self.router = router
         self.partition = partition
         self.model = model
-        self.period_s = period_s
         self.report_key = partition_key(keys, partition, "report")
         self.events_key = partition_key(keys, partition, "events")
         self.health_key = partition_key(keys, partition, "health")
@@ -125,9 +124,6 @@ class PartitionReport:
         self.reports = 0
         self._token: Any = None
         self._pubs: dict[str, Any] = {}
-        self._stop = threading.Event()
-        self._thread = NamedThread(target=self._run, name="partition-report", daemon=True)
-        self._died: str | None = None
         self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=10_000)
 
     def start(self) -> None:
@@ -138,7 +134,7 @@ class PartitionReport:
             "health": session.declare_publisher(self.health_key),
         }
         self._token = session.liveliness().declare_token(self.alive_key)
-        self._thread.start()
+        self.start_ticking(at_once=True)
 
     def report(self, view: HubView | None = None) -> bytes:
         view = view or self.model.snapshot(time.time_ns())
@@ -156,19 +152,12 @@ class PartitionReport:
             separators=(",", ":"),
         ).encode()
 
-    def _run(self) -> None:
-        try:
-            while True:
-                view = self.model.snapshot(time.time_ns())
-                self._pubs["report"].put(self.report(view))
-                if view.hub_health is not None:  # its machine, as a node's health (CDR)
-                    self._pubs["health"].put(encode(view.hub_health))
-                self.reports += 1
-                if self._stop.wait(self.period_s):
-                    return
-        except Exception as err:
-            self._died = f"the partition report thread died: {err!r}"
-            log.critical("%s", self._died, exc_info=True)
+    def tick(self) -> None:
+        view = self.model.snapshot(time.time_ns())
+        self._pubs["report"].put(self.report(view))
+        if view.hub_health is not None:  # its machine, as a node's health (CDR)
+            self._pubs["health"].put(encode(view.hub_health))
+        self.reports += 1
 
     def _on_event(self, e: Event) -> None:
         # Only this hub's own events: its nodes' events reach the main hub directly.
@@ -178,18 +167,13 @@ class PartitionReport:
 
     def stop(self) -> None:
         self._bus_sub.flush()
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
+        super().stop()
         if self._token is not None:
             self._token.undeclare()
             self._token = None
         pubs, self._pubs = self._pubs, {}
         for pub in pubs.values():
             pub.undeclare()
-
-    def failure(self) -> str | None:
-        return self._died
 
 
 class PartitionRuntime:

@@ -23,16 +23,20 @@ class Periodic:
         self._stop = threading.Event()
         self._thread = NamedThread(target=self._run, name=thread_name, daemon=True)
         self._died: str | None = None
+        self._at_once = False
 
     def tick(self) -> None:
         raise NotImplementedError
 
-    def start_ticking(self) -> None:
-        """The first tick comes `period_s` from now."""
+    def start_ticking(self, at_once: bool = False) -> None:
+        """The first tick comes `period_s` from now (`at_once`: now, in the thread)."""
+        self._at_once = at_once
         self._thread.start()
 
     def _run(self) -> None:
         try:
+            if self._at_once:
+                self.tick()
             while not self._stop.wait(self.period_s):
                 self.tick()
         except Exception as err:

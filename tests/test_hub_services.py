@@ -240,3 +240,18 @@ def test_a_periodic_workers_tick_that_raises_is_its_services_failure():
     assert t.ticks == 3
     assert t.failure() == "the ticker thread died: RuntimeError('third tick')"
     t.stop()
+
+    # The partition report ticks at once (its first report at start, not a period later).
+    class Once(Periodic):
+        def __init__(self) -> None:
+            super().__init__("once", 3600.0)
+            self.ticked = threading.Event()
+
+        def tick(self) -> None:
+            self.ticked.set()
+
+    o = Once()
+    o.start_ticking(at_once=True)
+    assert o.ticked.wait(30)
+    o.stop()
+    assert not o._thread.is_alive()
