@@ -50,15 +50,22 @@ class Checked:
     """What is wrong and how to fix it ("" when ok)."""
 
 
-def _issued_by(cert_path: Path, ca_path: Path) -> bool | None:
-    """Whether the CA at `ca_path` signed the certificate; None when either cannot be read."""
+def _load(path: Path) -> Any:
+    """The certificate at `path` (a cryptography x509.Certificate), or None."""
     from cryptography import x509
-    from cryptography.exceptions import InvalidSignature
 
     try:
-        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
-        ca = x509.load_pem_x509_certificate(ca_path.read_bytes())
+        return x509.load_pem_x509_certificate(path.read_bytes())
     except (OSError, ValueError):
+        return None
+
+
+def _issued_by(cert: Any, ca_path: Path) -> bool | None:
+    """Whether the CA at `ca_path` signed `cert`; None when either cannot be read."""
+    from cryptography.exceptions import InvalidSignature
+
+    ca = _load(ca_path)
+    if cert is None or ca is None:
         return None
     try:
         cert.verify_directly_issued_by(ca)
@@ -67,20 +74,12 @@ def _issued_by(cert_path: Path, ca_path: Path) -> bool | None:
     return True
 
 
-def _fingerprint(path: Path) -> str:
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-
-    try:
-        return x509.load_pem_x509_certificate(path.read_bytes()).fingerprint(hashes.SHA256()).hex()
-    except (OSError, ValueError):
-        return ""
-
-
 def judge(
     which: str, path: Path, fix: str, ca: Path | None, now_ns: int, days_before: float
 ) -> Checked:
     """One certificate: `ca` is the CA that should have issued it (None for the CA itself)."""
+    from cryptography.hazmat.primitives import hashes
+
     try:
         path.open("rb").close()
     except PermissionError as err:
@@ -98,6 +97,7 @@ def judge(
         copy = "copy the site's ca.crt here" if ca is None else fix
         return Checked(which, str(path), "unreadable", message=f"{c['error']} ({copy})")
     days = round((c["not_after_ns"] - now_ns) / DAY_NS, 2)
+    cert = _load(path)
     base = Checked(
         which,
         str(path),
@@ -106,9 +106,9 @@ def judge(
         not_before_ns=c["not_before_ns"],
         not_after_ns=c["not_after_ns"],
         days_left=days,
-        fingerprint=_fingerprint(path),
+        fingerprint=cert.fingerprint(hashes.SHA256()).hex() if cert is not None else "",
     )
-    if ca is not None and _issued_by(path, ca) is False:
+    if ca is not None and _issued_by(cert, ca) is False:
         state, message = (
             "foreign",
             f"not issued by the site CA {ca} beside it: the hub refuses it "

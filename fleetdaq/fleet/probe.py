@@ -65,6 +65,7 @@ def parse_time(stdout: str, expected: bool) -> TimeView:
 
 def parse_certificates(stdout: str) -> CertificatesView:
     """``fleetdaq pki check --json`` -> `CertificatesView`. Raises ValueError on anything else."""
+    from edge.certificate_dates import DAY_NS
     from fleetdaq.certificate_check import STATES
 
     try:
@@ -77,7 +78,7 @@ def parse_certificates(stdout: str) -> CertificatesView:
         return CertificatesView(
             tls=True,
             first_not_after_ns=first,
-            days_left=round((first - now_ns) / 86_400e9, 2) if first else None,
+            days_left=round((first - now_ns) / DAY_NS, 2) if first else None,
             ca_fingerprint=str(ca.get("fingerprint", "")),
             worst=max((str(c["state"]) for c in found), key=STATES.index, default="ok"),
             problems=tuple(str(p) for p in d["problems"]),
