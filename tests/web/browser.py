@@ -314,6 +314,22 @@ def outputs(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         result["cookies"] = [
             {k: c.get(k) for k in ("name", "secure", "httpOnly")} for c in page.context.cookies()
         ]
+        wait_rows(
+            page,
+            "Fleet",
+            lambda r: {x[0] for x in r if x[12].endswith(" d")} >= {"rig", "hub"},
+            "the certificates' days",
+        )
+        page.wait_for_function(  # amber once the hub's certificate_expiring/rig is active
+            """() => Array.from(document.querySelector('table[aria-label="Fleet"] tbody').rows)
+                .some((tr) => tr.cells[0].textContent === "rig"
+                              && tr.cells[12].className.includes("warn"))"""
+        )
+        result["certificates"] = page.evaluate(
+            """() => Array.from(document.querySelector('table[aria-label="Fleet"] tbody').rows)
+                .map((tr) => [tr.cells[0].textContent, tr.cells[12].textContent,
+                              tr.cells[12].className, tr.cells[12].title])"""
+        )
         page.screenshot(path=str(out / "outputs.png"), full_page=True)
         browser.close()
 

@@ -151,6 +151,7 @@ def test_every_demo_node_and_stream_is_shown(tour: Tour):
     assert set(fleet) == {*NODES, "hub"}
     assert all(fleet[n][1] == "yes" for n in NODES), fleet
     assert all(fleet[n][2] == "0.1.0" for n in NODES), "each node's version"
+    assert all(row[12] == "–" for row in fleet.values()), "the demo has no TLS: no certificate"
     streams = {row[0]: row for row in r["streams"]}
     assert set(streams) == set(STREAMS)
     assert "heave" in streams["wec/t8"][6]
@@ -248,8 +249,9 @@ def test_nothing_started_by_the_test_is_left_running(tour: Tour):
 
 OUTPUT_SITE = """\
 site: webout
+security: {{tls: true, pki_dir: {pki}}}
 hub:
-  listen: [tcp/127.0.0.1:7447]
+  listen: [tls/127.0.0.1:7447]
   recorder: {{file_duration_s: 60}}
   dashboard:
     enabled: true
@@ -290,11 +292,13 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
     tmp_path: Path,
 ):
     """Over HTTPS (`hub.dashboard.tls`, the site CA's hub pair, as the example site): the
-    page, its login (a Secure cookie), its live WebSocket (wss) and an action."""
+    page, its login (a Secure cookie), its live WebSocket (wss) and an action. The site runs
+    mutual TLS too, and the edge's pair ends in 10 days: the Fleet panel says so, amber."""
     needs_a_namespace()
     from fleetdaq import pki
 
     pki.init(tmp_path / "pki", "webout", ["127.0.0.1"])
+    pki.issue_node(tmp_path / "pki", "rig", days=10)
     data, users = tmp_path / "data", tmp_path / "users"
     add_user(users)
     site = tmp_path / "site.yaml"
@@ -334,6 +338,15 @@ def test_an_output_set_from_the_page_reaches_the_edge_and_its_readback_is_shown(
     assert result["ok"], result.get("error")
     assert "applied" in result["toast"]
     assert set(result["websockets"]) == {"wss://127.0.0.1:8080/api/live"}  # again after login
+    certs = {name: (text, cls, title) for name, text, cls, title in result["certificates"]}
+    text, cls, title = certs["rig"]
+    assert text in ("9 d", "10 d"), certs
+    assert "warn" in cls, certs  # its alarm: within 30 days
+    assert re.fullmatch(r"ends \d{4}-\d\d-\d\d \d\d:\d\d UTC", title), title
+    text, cls, _ = certs["hub"]  # the CA's hub pair: years
+    assert re.fullmatch(r"\d+ d", text), certs
+    assert int(text.split()[0]) > 300, certs
+    assert "warn" not in cls, certs
     assert result["cookies"] == [{"name": "fleetdaq_session", "secure": True, "httpOnly": True}]
     events = (data / "events.log").read_text()
     assert re.search(rf"rig/valve: set 1\.5 applied.*by operator {USER}@127\.0\.0\.1", events)

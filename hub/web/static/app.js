@@ -405,8 +405,9 @@
     if (gms.length) line += f.same_grandmaster ? " — the whole fleet follows one grandmaster" : " — NOT ONE GRANDMASTER";
     if (f.max_abs_offset_ns !== undefined && f.max_abs_offset_ns !== null) line += ` · max |offset| ${offset(f.max_abs_offset_ns)}`;
     setText($("fleet-time"), line, f.same_grandmaster === false ? "note bad" : "note");
-    const num12 = ["", "", "", "num", "num", "num", "num", "num", "", "num", "", "num"];
-    syncRows($("fleet-body"), fleetRows(v), (r) => r.name, () => cells(12, num12), (tr, r) => {
+    const num13 = ["", "", "", "num", "num", "num", "num", "num", "", "num", "", "num", "num"];
+    const alarmed = new Set(v.alarms.filter((a) => a.active).map((a) => a.name));
+    syncRows($("fleet-body"), fleetRows(v), (r) => r.name, () => cells(13, num13), (tr, r) => {
       const c = tr.cells;
       const h = r.h;
       const host = h ? h.host : null;
@@ -430,7 +431,23 @@
       setText(c[10], t && t.grandmaster_id ? t.grandmaster_id : "–");
       const spool = h ? h.streams.reduce((s, x) => s + x.spool_bytes, 0) : null;
       setText(c[11], spool === null ? "–" : bytes(spool), "num");
+      certificate(c[12], h, v.time_ns, alarmed.has(`certificate_expiring/${r.name}`));
     });
+  }
+  // Days until the TLS pair the machine connects with ends (its health says when): red once
+  // it has ended, amber while its certificate_expiring alarm is active.
+  function certificate(td, h, now, expiring) {
+    const ends = h ? h.certificate_not_after_ns : 0;
+    if (!ends) {
+      setText(td, "–", "num");
+      const why = h ? "no TLS, or the node cannot tell" : "";
+      if (td.title !== why) td.title = why;
+      return;
+    }
+    const left = (ends - now) / 86400e9;  // rounded as `fleetdaq fleet status` does
+    setText(td, left < 0 ? "ended" : `${Math.round(left)} d`, left < 0 ? "num bad" : expiring ? "num warn" : "num");
+    const when = `ends ${new Date(ends / 1e6).toISOString().slice(0, 16).replace("T", " ")} UTC`;
+    if (td.title !== when) td.title = when;
   }
 
   function renderStreams(v) {
