@@ -302,17 +302,20 @@ class Reader:
     def strings(self, limit: int = MAX_ITEMS) -> tuple[str, ...]:
         return tuple(self.string() for _ in range(self.count(limit)))
 
-    def end(self) -> None:
-        if self.pos != len(self.buf):
-            raise WireError(f"{len(self.buf) - self.pos} trailing bytes")
-
 
 def decode(payload: bytes | bytearray | memoryview, cls: type[T]) -> T:
     """Decode a message of type `cls` (registered with `message`). Raises WireError, only."""
     name: str = cls.__ros_type__  # type: ignore[attr-defined]
     r = Reader(payload)
     msg: T = _get_message(r, _definition(name), appendable=True)
-    r.end()
+    if r.pos != len(r.buf):
+        # Fields are only ever appended (older forms decode, above): bytes after the last one
+        # this fleetdaq knows are most likely a newer fleetdaq's form. Refused all the same
+        # (what is not understood is not checked), but said so the refusal points at the fix.
+        raise WireError(
+            f"{len(r.buf) - r.pos} trailing bytes after the last {name} field this fleetdaq "
+            "knows: sent by a newer fleetdaq? (upgrade the hub before its nodes)"
+        )
     return msg
 
 
