@@ -106,7 +106,13 @@ def ansible_env(root: Path) -> dict[str, str]:
 
 
 def write_inventory(
-    lab: Lab, root: Path, wheelhouse: Path, path: Path, partition: str = "bay2", **edge_nodes: str
+    lab: Lab,
+    root: Path,
+    wheelhouse: Path,
+    path: Path,
+    partition: str = "bay2",
+    pki: Path | None = None,
+    **edge_nodes: str,
 ) -> Path:
     known_hosts = root / "known_hosts"
     known_hosts.write_text("".join(h.known_hosts_line() + "\n" for h in lab.hosts))
@@ -138,7 +144,7 @@ def write_inventory(
                 "fleetdaq_python": "/usr/bin/python3",
                 "fleetdaq_wheelhouse": str(wheelhouse),
                 "fleetdaq_site_src": str(root / "site.yaml"),
-                "fleetdaq_pki_src": str(root / "pki"),
+                "fleetdaq_pki_src": str(pki or root / "pki"),
                 "fleetdaq_hub_extras": [],
             },
             "children": {
@@ -346,4 +352,41 @@ def test_an_inventory_that_does_not_fit_the_site_file_stops_before_any_host(
     assert r.returncode != 0
     for line in said:
         assert line in r.stdout, r.stdout[-4000:]
+    assert "PLAY [Hub]" not in r.stdout
+
+
+def test_a_certificate_the_site_ca_did_not_issue_stops_before_any_host(
+    deploy: Deploy, tmp_path: Path
+):
+    """wec's pair from another CA (kept from before a `pki init --force`): copied out, every
+    link it makes would be refused while its unit runs on. The preflight verifies each pair
+    with openssl and stops, saying which, why and the command that makes it again; a pair
+    that ends soon is named and deployed all the same."""
+    pki = tmp_path / "pki"
+    shutil.copytree(deploy.root / "pki", pki)
+    other = tmp_path / "other"
+    fleetdaq(
+        "pki", "init", "--site", "deploytest", "--hub-name", "10.233.0.10", "--dir", str(other)
+    )
+    fleetdaq("pki", "issue", "wec", "--dir", str(other))
+    for name in ("wec.crt", "wec.key"):
+        shutil.copy(other / "nodes" / name, pki / "nodes" / name)
+    fleetdaq("pki", "issue", "shore", "--days", "10", "--force", "--dir", str(pki))
+    bad = write_inventory(
+        deploy.lab,
+        deploy.root,
+        Path(deploy.env["HOME"]),
+        tmp_path / "inventory.yml",
+        pki=pki,
+        **{"shore-pi": "shore"},
+    )
+    r = deploy.playbook(bad)
+    assert r.returncode != 0
+    out = " ".join(r.stdout.split())  # Ansible folds long messages
+    assert f"{pki}/nodes/wec.crt: unable to get local issuer certificate against {pki}/ca.crt" in (
+        out
+    ), r.stdout[-4000:]
+    assert "make it again: fleetdaq pki issue wec --force --config" in out
+    assert f"{pki}/nodes/shore.crt ends within 30 days" in out, r.stdout[-4000:]
+    assert "nodes/shore.crt: unable" not in out  # only named, not a reason to stop
     assert "PLAY [Hub]" not in r.stdout
