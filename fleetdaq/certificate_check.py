@@ -29,6 +29,10 @@ GOOD = ("ok", "not_permitted")
 """States that are not the host's fault."""
 
 _ROTATE = "rotate: fleetdaq pki init --force, re-issue every pair, copy them out, restart"
+_HUB_AGAIN = (
+    "fleetdaq pki hub --force (the same CA: the nodes keep their pairs), copy hub.crt and "
+    "hub.key here, restart the hub"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,7 +143,7 @@ def _pairs(
         hub = (pki / "hub.crt").exists()
         partitions = tuple(sorted(p.stem for p in pki.glob("partitions/*.crt")))
         nodes = tuple(sorted(p.stem for p in pki.glob("nodes/*.crt")))
-    out = [("hub", pki / "hub.crt", _ROTATE)] if hub else []
+    out = [("hub", pki / "hub.crt", _HUB_AGAIN)] if hub else []
     out += [
         (f"partition {p}", pki / "partitions" / f"{p}.crt",
          f"fleetdaq pki issue {p} --partition --config SITE_FILE --force, copy it, restart")

@@ -197,9 +197,36 @@ def init(
     _write(folder / "ca.key", _key_pem(key), 0o600, force)
     _write(folder / "ca.crt", cert.public_bytes(serialization.Encoding.PEM), 0o644, force)
     ca = Issued(f"fleetdaq {site} CA", folder / "ca.crt", folder / "ca.key", now)
-    names = hub_names or [socket.gethostname(), "localhost", "127.0.0.1"]
+    names = hub_names or _this_machine()
     hub = _leaf(folder, HUB, folder / HUB, LEAF_DAYS, force, server_names=names)
     return [ca, hub]
+
+
+def _this_machine() -> list[str]:
+    return [socket.gethostname(), "localhost", "127.0.0.1"]
+
+
+def server_names(cert_path: Path) -> list[str]:
+    """The host names and addresses a router certificate is valid for, in its order ([] when
+    there is none, or it cannot be read)."""
+    try:
+        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except (OSError, ValueError, x509.ExtensionNotFound):
+        return []
+    return [str(n.value) for n in san if isinstance(n, x509.DNSName | x509.IPAddress)]
+
+
+def issue_hub(
+    folder: Path, hub_names: list[str] | None = None, days: int = LEAF_DAYS, force: bool = False
+) -> tuple[Issued, list[str]]:
+    """The main hub's router pair again, signed by the site CA already there: its certificate
+    ends (or names a host the hub no longer has) while the CA goes on. The nodes keep their
+    pairs and ca.crt; only the hub's machine gets the new pair. Valid for `hub_names`, or the
+    names of the hub.crt it replaces (a renewal), or this machine's when there is none.
+    Returns the pair and the names it is valid for."""
+    names = hub_names or server_names(folder / "hub.crt") or _this_machine()
+    return _leaf(folder, HUB, folder / HUB, days, force, server_names=names), names
 
 
 def issue_node(folder: Path, node: str, days: int = LEAF_DAYS, force: bool = False) -> Issued:

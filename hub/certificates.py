@@ -7,8 +7,9 @@ together (`fleetdaq pki init`, then `issue`, 825 days each, never past the CA) a
 together, so the hub's own certificate is the first to go. Both are read at start and every
 hour into the read model (``certificates``), where the universal alarm
 ``certificate_expiring/hub`` watches them. While one is within ``warn_days`` a WARNING event
-says which, when, and how to rotate, at start and then once a day (a partition hub's reaches
-the main hub's events.log with its others).
+says which, when, and how to fix it (the hub's pair alone again with the same CA:
+`fleetdaq pki hub`; a rotation for the CA), at start and then once a day (a partition hub's
+reaches the main hub's events.log with its others).
 """
 
 from __future__ import annotations
@@ -46,6 +47,15 @@ class CertificateWatch(Periodic):
         pki = Path(site.security.pki_dir)
         own = pki / "hub.crt" if partition is None else pki / "partitions" / f"{partition}.crt"
         self.files = {"hub": own, "ca": pki / "ca.crt"}
+        self.fixes = {
+            "ca": "Rotate: fleetdaq pki init --force, re-issue every pair, copy, restart",
+            "hub": (
+                "Issue it again with the same CA: "
+                + ("fleetdaq pki hub --force" if partition is None else
+                   f"fleetdaq pki issue {partition} --partition --config SITE_FILE --force")
+                + ", copy the pair to this machine, restart this hub (the nodes keep theirs)"
+            ),
+        }  # fmt: skip
         self.warn_days = warn_days(site)
         self.model = model
         self.bus = bus
@@ -81,8 +91,7 @@ class CertificateWatch(Periodic):
                     which,
                     logging.WARNING if days > 0 else logging.ERROR,
                     f"{what} {cert['path']} {when}: after it no link that uses it connects. "
-                    "Rotate: fleetdaq pki init --force, re-issue every pair, copy, restart "
-                    "(README: Adding a node, revoking, rotating)",
+                    f"{self.fixes[which]} (README: Adding a node, revoking, rotating)",
                     cert,
                     days_left=round(days, 2),
                 )

@@ -115,6 +115,12 @@ def test_ended_not_started_foreign_and_missing_pairs_each_say_what_to_do(tmp_pat
     assert by_which(ended)["node wec"]["days_left"] == -1.0
     assert any("expired on" in p and "pki issue wec --force" in p for p in ended["problems"])
 
+    # The hub's own pair ended while the CA goes on: that pair again, not a rotation.
+    hub = by_which(check(site, hub=True, now_ns=wec_ends + DAY_NS))["hub"]
+    assert hub["state"] == "expired"
+    assert "fleetdaq pki hub --force" in str(hub["message"])
+    assert "pki init" not in str(hub["message"])
+
     early = check(site, partitions=("bay2",), now_ns=wec_ends - 900 * DAY_NS)
     bay2 = by_which(early)["partition bay2"]
     assert bay2["state"] == "not_yet_valid"

@@ -219,3 +219,43 @@ def test_a_partition_hub_gets_its_own_pair_and_rights_over_its_own_nodes_only(tm
     # The main hub's node is no part of it: not its data, acks, outputs or liveliness.
     assert not any("/wec/" in k for r in granted for k in r["key_exprs"])
     assert not any("/ack/" in k for r in granted for k in r["key_exprs"])
+
+
+def test_the_hubs_pair_again_keeps_its_ca_and_its_names(tmp_path: Path):
+    """`pki hub`: the hub's router pair issued again with the CA already there (the nodes'
+    pairs and ca.crt stay valid): the names of the pair it replaces unless given, never over
+    an existing pair without --force."""
+    d = tmp_path / "pki"
+    assert pki("init", "--dir", str(d), "--site", "buoy", "--hub-name", "hub.buoy.lan",
+               "--hub-name", "10.0.0.2").returncode == 0  # fmt: skip
+    assert pki("issue", "wec", "--dir", str(d)).returncode == 0
+    ca_before, old = (d / "ca.crt").read_bytes(), cert(d / "hub.crt")
+    r = pki("hub", "--dir", str(d))
+    assert r.returncode == 2
+    assert r.stderr == f"pki hub: {d}/hub.crt exists (use --force to replace it)\n"
+
+    r = pki("hub", "--dir", str(d), "--force", "--days", "400")
+    assert r.returncode == 0, r.stderr
+    assert "for hub.buoy.lan, 10.0.0.2;" in r.stdout
+    assert "the nodes keep their pairs" in r.stdout
+    new = cert(d / "hub.crt")
+    assert (d / "ca.crt").read_bytes() == ca_before
+    new.verify_directly_issued_by(cert(d / "ca.crt"))
+    cert(d / "nodes" / "wec.crt").verify_directly_issued_by(cert(d / "ca.crt"))
+    assert new.serial_number != old.serial_number
+    assert cn(new) == "hub"
+    assert 399 <= (new.not_valid_after_utc - new.not_valid_before_utc).days <= 400
+    san = new.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.DNSName) == ["hub.buoy.lan"]
+    assert san.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("10.0.0.2")]
+    usage = new.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+    assert ExtendedKeyUsageOID.SERVER_AUTH in usage
+    check_private_file(d / "hub.key")
+
+    r = pki("hub", "--dir", str(d), "--force", "--hub-name", "hub2.buoy.lan")  # it moved
+    assert r.returncode == 0, r.stderr
+    san = cert(d / "hub.crt").extensions.get_extension_for_class(x509.SubjectAlternativeName)
+    assert san.value.get_values_for_type(x509.DNSName) == ["hub2.buoy.lan"]
+    r = pki("hub", "--dir", str(tmp_path / "empty"), "--force")
+    assert (r.returncode, r.stderr) == (2, f"pki hub: no site CA in {tmp_path}/empty (run "
+                                           "`fleetdaq pki init` first)\n")  # fmt: skip

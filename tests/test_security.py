@@ -33,7 +33,7 @@ from edge.messages import CommandRecord, OutputCommand, make_event
 from edge.security import TlsFiles, read_certificate
 from edge.wire import BatchEncoder, encode_u64
 from edge.zenoh_session import client_config
-from fleetdaq.pki import init, issue_node, issue_operator
+from fleetdaq.pki import init, issue_hub, issue_node, issue_operator
 from fleetdaq.read import read_stream
 from ptp.quality import UNSYNCED
 from tests.procs import REPO, Proc, free_port, sessions, stream_view, wait_for_port, wait_until
@@ -324,7 +324,13 @@ def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
         }
         assert which == {("hub", "hub"), ("hub", "ca"), ("wec", "ca")}, events
         assert all(e["level"] == logging.WARNING for e in events)
-        assert all("fleetdaq pki init --force" in e["message"] for e in events)
+        for e in events:  # the CA: a rotation; the hub's own pair: that pair, same CA
+            fix = (
+                "pki hub --force"
+                if (e["node"], e["fields"][0]["value"]) == ("hub", "hub")
+                else ("pki init --force")
+            )
+            assert fix in e["message"], e
         assert str(pki / "hub.crt") in " ".join(e["message"] for e in events)
         (said,) = [e for e in events if e["node"] == "wec"]
         assert "the hub refuses this node" in said["message"]
@@ -335,6 +341,80 @@ def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
         if edge is not None:
             edge.kill()
         hub.kill()
+
+
+def test_the_hubs_pair_issued_again_with_the_same_ca_lets_every_node_back_in(tmp_path: Path):
+    """A hub pair that ends in 10 days (the CA goes on): ``certificate_expiring/hub`` says to
+    issue the hub's pair again, not to rotate. `fleetdaq pki hub --force` makes it with the
+    names of the one it replaces; the hub restarted on it, the edge (its own pair and ca.crt
+    untouched, never restarted) is let back in and delivers, and the alarm is clear."""
+    pki = tmp_path / "pki"
+    init(pki, "renew", ["127.0.0.1"])
+    issue_hub(pki, days=10, force=True)
+    issue_operator(pki, "bob", "view")
+    issue_node(pki, "wec")
+    wec_pair = [(pki / "nodes" / f).read_bytes() for f in ("wec.crt", "wec.key")]
+    port = free_port()
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(
+        SITE.replace("site: sec", "site: renew").format(pki=pki, port=port)
+        .replace("{ann: control, bob: view}", "{bob: view}")
+    )  # fmt: skip
+    s = Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys("renew"), [])
+    args = ["hub", "--config", str(cfg), "--data", str(s.data)]
+    hub = Proc(args, tmp_path / "hub.log")
+    edge = hub2 = None
+
+    def alarm(view: dict[str, Any] | None) -> dict[str, Any] | None:
+        found = [
+            a for a in (view or {}).get("alarms", []) if a["name"] == "certificate_expiring/hub"
+        ]
+        return found[0] if found else None
+
+    def batches(view: dict[str, Any] | None) -> int:
+        return int((stream_view(view or {}, "wec", "t8") or {}).get("batches", 0))
+
+    try:
+        wait_for_port(port)
+        edge = Proc(
+            ["edge", "--config", str(cfg), "--node", "wec", "--spool", str(tmp_path / "sp")],
+            tmp_path / "wec.log",
+        )
+        wait_until(lambda: (alarm(s.try_view()) or {}).get("active"), 30, "the alarm raised")
+        wait_until(lambda: batches(s.try_view()) > 3, 30, "wec recording")
+        hub_said = {"key": "which", "value": "hub"}
+        (said,) = [
+            e for e in s.hub_view()["recent_events"]
+            if e["tag"] == "certificate_expiring" and hub_said in e["fields"]
+        ]  # fmt: skip
+        assert "fleetdaq pki hub --force" in said["message"]
+        assert "the nodes keep theirs" in said["message"]
+
+        r = subprocess.run(
+            [sys.executable, "-m", "fleetdaq", "pki", "hub", "--force", "--dir", str(pki)],
+            cwd=REPO, capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        assert "for 127.0.0.1;" in r.stdout  # the names of the pair it replaced
+        assert hub.terminate(30) == 0, hub.output()[-3000:]
+        hub2 = Proc(args, tmp_path / "hub2.log")
+        wait_for_port(port)
+        wait_until(lambda: batches(s.try_view()) > 3, 60, "wec back in with its old pair")
+        view = s.hub_view()
+        assert view["certificates"]["hub"]["not_after_ns"] > time.time_ns() + 800 * 86_400e9
+        wait_until(
+            lambda: not (alarm(s.try_view()) or {"active": True})["active"], 30, "the alarm clear"
+        )
+        cleared = alarm(s.hub_view())
+        assert cleared is not None
+        assert cleared["value"] > 800, cleared
+        assert [(pki / "nodes" / f).read_bytes() for f in ("wec.crt", "wec.key")] == wec_pair
+        assert edge.terminate(30) == 0, edge.output()[-3000:]
+        assert hub2.terminate(30) == 0, hub2.output()[-3000:]
+    finally:
+        for p in (edge, hub, hub2):
+            if p is not None:
+                p.kill()
 
 
 def test_zz_the_fleet_recorded_without_gaps_and_nothing_forged(site: Site):

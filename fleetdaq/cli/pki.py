@@ -1,7 +1,8 @@
 """``fleetdaq pki``: the site's certificates — `init` (the site CA and the hub's router
-certificate), `issue NODE`, `issue NAME --partition` (a partition hub's router) and
-`issue --operator NAME --role view|control`, `list`, and `check` (the dates and issuer of
-the certificates one machine holds; `fleetdaq fleet status` runs it on every host)."""
+certificate), `hub` (that pair again, with the same CA), `issue NODE`, `issue NAME
+--partition` (a partition hub's router) and `issue --operator NAME --role view|control`,
+`list`, and `check` (the dates and issuer of the certificates one machine holds; `fleetdaq
+fleet status` runs it on every host)."""
 
 from __future__ import annotations
 
@@ -132,6 +133,37 @@ def issue(
         )
     if partition:
         click.echo(f"Copy it, the key and ca.crt to partition hub {name}'s machine only.")
+
+
+@pki.command("hub")
+@_dir_option
+@click.option(
+    "--hub-name",
+    "hub_names",
+    multiple=True,
+    help="A host name or address edges use to reach the hub (repeat; default: those of the "
+    "hub.crt it replaces).",
+)
+@click.option("--days", default=825, show_default=True)
+@click.option("--force", is_flag=True, help="Replace the hub's certificate and key.")
+def hub_pair(folder: Path, hub_names: tuple[str, ...], days: int, force: bool) -> None:
+    """Issue the main hub's router pair again with the site CA already there (its certificate
+    ends, or the hub has a new name or address): the nodes keep their pairs and ca.crt."""
+    from edge.security import SecretFileError
+    from fleetdaq.pki import PkiError, issue_hub
+
+    try:
+        made, names = issue_hub(folder, list(hub_names) or None, days, force)
+    except (PkiError, SecretFileError) as err:
+        fail(f"pki hub: {err}", 2)
+    click.echo(
+        f"{made.cert}  (CN {made.cn}, until {made.not_after:%Y-%m-%d}, for {', '.join(names)}; "
+        f"key {made.key})"
+    )
+    click.echo(
+        "Copy hub.crt and hub.key to the hub's machine only (or run the playbook) and restart "
+        "the hub; the nodes keep their pairs and ca.crt."
+    )
 
 
 def _partition_hosts(config: str | None, name: str) -> list[str]:

@@ -358,10 +358,10 @@ def test_an_inventory_that_does_not_fit_the_site_file_stops_before_any_host(
 def test_a_certificate_the_site_ca_did_not_issue_stops_before_any_host(
     deploy: Deploy, tmp_path: Path
 ):
-    """wec's pair from another CA (kept from before a `pki init --force`): copied out, every
-    link it makes would be refused while its unit runs on. The preflight verifies each pair
-    with openssl and stops, saying which, why and the command that makes it again; a pair
-    that ends soon is named and deployed all the same."""
+    """wec's and the hub's pairs from another CA (kept from before a `pki init --force`):
+    copied out, every link they make would be refused while their units run on. The
+    preflight verifies each pair with openssl and stops, saying which, why and the command
+    that makes it again; a pair that ends soon is named and deployed all the same."""
     pki = tmp_path / "pki"
     shutil.copytree(deploy.root / "pki", pki)
     other = tmp_path / "other"
@@ -369,8 +369,8 @@ def test_a_certificate_the_site_ca_did_not_issue_stops_before_any_host(
         "pki", "init", "--site", "deploytest", "--hub-name", "10.233.0.10", "--dir", str(other)
     )
     fleetdaq("pki", "issue", "wec", "--dir", str(other))
-    for name in ("wec.crt", "wec.key"):
-        shutil.copy(other / "nodes" / name, pki / "nodes" / name)
+    for name in ("nodes/wec.crt", "nodes/wec.key", "hub.crt", "hub.key"):
+        shutil.copy(other / name, pki / name)
     fleetdaq("pki", "issue", "shore", "--days", "10", "--force", "--dir", str(pki))
     bad = write_inventory(
         deploy.lab,
@@ -387,6 +387,8 @@ def test_a_certificate_the_site_ca_did_not_issue_stops_before_any_host(
         out
     ), r.stdout[-4000:]
     assert "make it again: fleetdaq pki issue wec --force --config" in out
+    assert f"{pki}/hub.crt: unable to get local issuer certificate" in out
+    assert f"make it again: fleetdaq pki hub --force --dir {pki})" in out  # the same CA
     assert f"{pki}/nodes/shore.crt ends within 30 days" in out, r.stdout[-4000:]
     assert "nodes/shore.crt: unable" not in out  # only named, not a reason to stop
     assert "PLAY [Hub]" not in r.stdout
