@@ -119,6 +119,17 @@ class Site:
             s.close()
 
 
+def small_site(tmp_path: Path, pki: Path, name: str) -> Site:
+    """Another site on `pki` (its operator bob only), for a test of its own hub and edges."""
+    port = free_port()
+    cfg = tmp_path / "site.yaml"
+    cfg.write_text(
+        SITE.replace("site: sec", f"site: {name}").format(pki=pki, port=port)
+        .replace("{ann: control, bob: view}", "{bob: view}")
+    )  # fmt: skip
+    return Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys(name), [])
+
+
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
     tmp = tmp_path_factory.mktemp("sec")
@@ -290,13 +301,8 @@ def test_the_hubs_certificates_are_watched_and_one_near_its_end_is_an_alarm(
     init(pki, "soon", ["127.0.0.1"], days=10)
     issue_operator(pki, "bob", "view")
     issue_node(pki, "wec")  # never past the CA: 10 days too
-    port = free_port()
-    cfg = tmp_path / "site.yaml"
-    cfg.write_text(
-        SITE.replace("site: sec", "site: soon").format(pki=pki, port=port)
-        .replace("{ann: control, bob: view}", "{bob: view}")
-    )  # fmt: skip
-    soon = Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys("soon"), [])
+    soon = small_site(tmp_path, pki, "soon")
+    port, cfg = soon.port, soon.cfg
     hub = Proc(["hub", "--config", str(cfg), "--data", str(soon.data)], tmp_path / "hub.log")
     edge = None
     try:
@@ -354,13 +360,8 @@ def test_the_hubs_pair_issued_again_with_the_same_ca_lets_every_node_back_in(tmp
     issue_operator(pki, "bob", "view")
     issue_node(pki, "wec")
     wec_pair = [(pki / "nodes" / f).read_bytes() for f in ("wec.crt", "wec.key")]
-    port = free_port()
-    cfg = tmp_path / "site.yaml"
-    cfg.write_text(
-        SITE.replace("site: sec", "site: renew").format(pki=pki, port=port)
-        .replace("{ann: control, bob: view}", "{bob: view}")
-    )  # fmt: skip
-    s = Site(tmp_path, pki, port, cfg, tmp_path / "data", SiteKeys("renew"), [])
+    s = small_site(tmp_path, pki, "renew")
+    port, cfg = s.port, s.cfg
     args = ["hub", "--config", str(cfg), "--data", str(s.data)]
     hub = Proc(args, tmp_path / "hub.log")
     edge = hub2 = None
