@@ -78,6 +78,8 @@ class DeviceTimeFit:
         self._segment: tuple[int, int] | None = None  # (index, device ns) of a segment's first read
         self._last: tuple[int, int] | None = None  # (index, device ns) of the newest read
         self._next_ns: int | None = None  # where the last stamped batch ended
+        self._prev_last_ns: int | None = None  # the last stamped batch's last sample time
+        self._last_read_ns = 0  # host time the newest read returned
         self.slewed = 0
         """Batches stamped from the previous batch's end, not the fit (see `stamp`)."""
         self._clear_fit()
@@ -108,6 +110,7 @@ class DeviceTimeFit:
         else:
             device_ns = self._map_segment(last_index, host_ns, device_ns)
         self._last = (last_index, device_ns)
+        self._last_read_ns = host_ns
         self._add(device_ns, host_ns)
 
     def _map_segment(self, index: int, host_ns: int, device_ns: int) -> int:
@@ -209,17 +212,30 @@ class DeviceTimeFit:
         so that it ends where the fit says: sample times only increase, and are back on the fit
         by the batch's end (each sample is off by at most the move, shrinking to 0). A larger
         move back is a clock step (the fit restarted): the fit's times are used as they are.
+
+        Nor is a slewed batch's last scan stamped later than its read returned (a batch of one
+        scan a second, after a late read, would otherwise be stamped in the future): it then
+        starts later than the fit but earlier than `prev` — still after the previous batch's
+        last sample, which was read before.
         """
         t0 = self.time_of(index)  # int ns: a float64 holds today's times to 256 ns only
         period = self.period_ns
         span = period * scans
         prev = self._next_ns
         if prev is not None and t0 < prev:
-            end = (t0 - prev) + span  # where the fit ends this batch, from `prev`
-            if end >= 0.5 * span:
-                t0, period = prev, end / scans
+            fit_end = t0 + round(span)
+            if fit_end - prev >= 0.5 * span:
+                start = prev
+                if self._last is not None and self._last[0] == index + scans - 1:
+                    # The latest start whose last scan, ending at fit_end, is not after the read.
+                    read = self._last_read_ns
+                    start = min(start, read - (scans - 1) * (fit_end - read))
+                    if self._prev_last_ns is not None and start <= self._prev_last_ns:
+                        start = prev  # never back in time, that comes first
+                t0, period = start, (fit_end - start) / scans
                 self.slewed += 1
         self._next_ns = t0 + round(period * scans)
+        self._prev_last_ns = t0 + round(period * (scans - 1))
         return t0, period
 
     @property

@@ -144,6 +144,26 @@ def test_sample_times_only_increase_when_a_fast_read_lowers_the_fit() -> None:
     assert clock.restarts == 0
 
 
+def test_a_slow_stream_is_never_stamped_after_its_read_returned() -> None:
+    """One scan a batch at 4 Hz (a thermocouple), reads now late, now quick: a quick read
+    after a late one moves the fit back, and starting where the previous batch "ended" (250 ms
+    after a late stamp) would put the sample after the moment it was read, in the future. It
+    is placed no later than its read, and still after the previous sample."""
+    rng = np.random.default_rng(7)
+    clock = DeviceTimeFit(4.0)
+    stamps, reads = [], []
+    for k in range(200):
+        read = T0 + k * 250_000_000 + int(rng.choice([0.2e6, 0.5e6, 3e6, 5e6, 8e6]))
+        clock.observe(k, read)
+        stamps.append(clock.stamp(k, 1)[0])
+        reads.append(read)
+    late = np.array(stamps) - np.array(reads)
+    assert late.max() <= 0, f"stamped {late.max() / 1e6:.3f} ms after its read returned"
+    assert np.all(np.diff(stamps) > 0)
+    assert clock.slewed >= 10, "the quick reads did move the fit back"
+    assert clock.restarts == 0
+
+
 def test_a_clock_step_back_is_not_smoothed_over() -> None:
     clock = DeviceTimeFit(1000.0)
     for k in range(1, 50):
