@@ -21,6 +21,23 @@ if TYPE_CHECKING:
     from edge.config.site import SiteConfig
 
 DAY_NS = 86_400 * 10**9
+
+# The commands that make a pair again (`fleetdaq pki`), named by every message that says a
+# certificate ends: the node's events, the hub's, its alarms, `pki check`.
+ROTATE = "fleetdaq pki init --force"
+"""A new site CA: every pair is then issued again."""
+HUB_AGAIN = "fleetdaq pki hub --force"
+"""The main hub's pair again, with the same CA (the nodes keep theirs)."""
+
+
+def node_again(node: str) -> str:
+    return f"fleetdaq pki issue {node} --force"
+
+
+def partition_again(partition: str) -> str:
+    return f"fleetdaq pki issue {partition} --partition --config SITE_FILE --force"
+
+
 WARN_DAYS = 30.0
 """Warn this many days before, unless ``certificate_expiring``'s `threshold` says otherwise."""
 
@@ -84,9 +101,9 @@ def check_dates(
     if days < days_before:
         when = when_it_ends(ends, now_ns)
         if first is ca:
-            what, fix = "the site CA", "rotate every pair: fleetdaq pki init --force, then issue"
+            what, fix = "the site CA", f"rotate every pair: {ROTATE}, then issue"
         else:
-            what, fix = f"node {node}'s certificate", f"fleetdaq pki issue {node} --force"
+            what, fix = f"node {node}'s certificate", node_again(node)
         notes.append(
             Note(
                 logging.ERROR if days <= 0 else logging.WARNING,

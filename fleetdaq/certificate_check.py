@@ -15,7 +15,16 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from edge.certificate_dates import DAY_NS, utc_text, warn_days, when_it_ends
+from edge.certificate_dates import (
+    DAY_NS,
+    HUB_AGAIN,
+    ROTATE,
+    node_again,
+    partition_again,
+    utc_text,
+    warn_days,
+    when_it_ends,
+)
 from edge.security import read_certificate
 
 if TYPE_CHECKING:
@@ -28,10 +37,10 @@ services' own, 0750), which says nothing of the host; the rest are something to 
 GOOD = ("ok", "not_permitted")
 """States that are not the host's fault."""
 
-_ROTATE = "rotate: fleetdaq pki init --force, re-issue every pair, copy them out, restart"
+_ROTATE = f"rotate: {ROTATE}, re-issue every pair, copy them out, restart"
 _HUB_AGAIN = (
-    "fleetdaq pki hub --force (the same CA: the nodes keep their pairs), copy hub.crt and "
-    "hub.key here, restart the hub"
+    f"{HUB_AGAIN} (the same CA: the nodes keep their pairs), copy hub.crt and hub.key here, "
+    "restart the hub"
 )
 
 
@@ -146,12 +155,12 @@ def _pairs(
     out = [("hub", pki / "hub.crt", _HUB_AGAIN)] if hub else []
     out += [
         (f"partition {p}", pki / "partitions" / f"{p}.crt",
-         f"fleetdaq pki issue {p} --partition --config SITE_FILE --force, copy it, restart")
+         f"{partition_again(p)}, copy it, restart")
         for p in partitions
     ]  # fmt: skip
     out += [
         (f"node {n}", pki / "nodes" / f"{n}.crt",
-         f"fleetdaq pki issue {n} --force, copy it, restart the edge")
+         f"{node_again(n)}, copy it, restart the edge")
         for n in nodes
     ]  # fmt: skip
     return out

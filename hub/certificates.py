@@ -19,7 +19,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from edge.certificate_dates import DAY_NS, warn_days, when_it_ends
+from edge.certificate_dates import (
+    DAY_NS,
+    HUB_AGAIN,
+    ROTATE,
+    partition_again,
+    warn_days,
+    when_it_ends,
+)
 from edge.config.site import SiteConfig
 from edge.security import read_certificate
 from hub.bus import EventBus
@@ -47,15 +54,12 @@ class CertificateWatch(Periodic):
         pki = Path(site.security.pki_dir)
         own = pki / "hub.crt" if partition is None else pki / "partitions" / f"{partition}.crt"
         self.files = {"hub": own, "ca": pki / "ca.crt"}
+        again = HUB_AGAIN if partition is None else partition_again(partition)
         self.fixes = {
-            "ca": "Rotate: fleetdaq pki init --force, re-issue every pair, copy, restart",
-            "hub": (
-                "Issue it again with the same CA: "
-                + ("fleetdaq pki hub --force" if partition is None else
-                   f"fleetdaq pki issue {partition} --partition --config SITE_FILE --force")
-                + ", copy the pair to this machine, restart this hub (the nodes keep theirs)"
-            ),
-        }  # fmt: skip
+            "ca": f"Rotate: {ROTATE}, re-issue every pair, copy, restart",
+            "hub": f"Issue it again with the same CA: {again}, copy the pair to this machine, "
+            "restart this hub (the nodes keep theirs)",
+        }
         self.warn_days = warn_days(site)
         self.model = model
         self.bus = bus

@@ -406,6 +406,13 @@ def test_each_nodes_certificate_is_watched_from_its_health():
     wec = defs["certificate_expiring/wec"]
     assert (wec.kind, wec.severity, wec.threshold, wec.unit) == ("node", "major", 30.0, "days")
     assert "fleetdaq pki issue wec --force" in wec.description
+    hub = defs["certificate_expiring/hub"].description  # its own pair alone, or the CA
+    assert "fleetdaq pki hub --force" in hub
+    assert "fleetdaq pki init --force" in hub
+    assert (
+        "--partition --config SITE_FILE --force"
+        in defs["certificate_expiring/hub/bay2"].description
+    )
     now = time.time_ns()
     day = 86_400 * 10**9
 

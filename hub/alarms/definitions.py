@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from edge.certificate_dates import HUB_AGAIN, ROTATE, node_again, partition_again
 from edge.config.alarms import (
     ChannelAlarm,
     HubAlarm,
@@ -284,8 +285,9 @@ def _certificates(site: SiteConfig, r: UniversalRule) -> list[AlarmDef]:
             "certificate_expiring/hub", "hub", "certificate_expiring",
             f"the hub's certificate or the site CA expires within {days:g} days", r.severity,
             node="hub", unit="days", threshold=days, latch=r.latch, universal=True,
-            description="Past it no edge connects (they spool). Rotate: fleetdaq pki init "
-            "--force, re-issue every pair, copy them out, restart hub and edges.",
+            description=f"Past it no edge connects (they spool). The hub's own pair: {HUB_AGAIN}"
+            " (the same CA), copy hub.crt and hub.key to the hub, restart it. The site CA: "
+            f"rotate ({ROTATE}), re-issue every pair, copy them out, restart hub and edges.",
         )
     ]  # fmt: skip
     for node in site.nodes:
@@ -296,7 +298,7 @@ def _certificates(site: SiteConfig, r: UniversalRule) -> list[AlarmDef]:
                 r.severity, node=node, unit="days", threshold=days, latch=r.latch,
                 universal=True,
                 description=f"Past it the hub refuses {node} (it spools). Issue a new pair "
-                f"(fleetdaq pki issue {node} --force), copy it to the node, restart its edge.",
+                f"({node_again(node)}), copy it to the node, restart its edge.",
             )
         )  # fmt: skip
     for p in site.hub.partitions:
@@ -307,7 +309,7 @@ def _certificates(site: SiteConfig, r: UniversalRule) -> list[AlarmDef]:
                 r.severity, node=f"hub/{p}", unit="days", threshold=days, latch=r.latch,
                 universal=True,
                 description=f"Past it partition {p}'s nodes no longer reach the main hub. Issue "
-                f"a new pair (fleetdaq pki issue {p} --partition --force), copy it, restart it.",
+                f"a new pair ({partition_again(p)}), copy it, restart it.",
             )
         )  # fmt: skip
     return out
