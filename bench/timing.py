@@ -7,7 +7,7 @@ in seconds: its CORE_TIMER (100 MHz) runs `--drift-ppm` fast against the host, a
 eStreamRead returns a uniformly random 0..`--latency-ms` after its last scan. The real
 `labjack_t8` driver reads it (CORE_TIMER decoding, unwrapping) and each batch is stamped the
 way the agent stamps it: ``DeviceTimeFit.observe(last index, host time, device time)`` then
-``time_of(first index)``. The error is that stamp minus the host time at which the sim really
+``stamp(first index, scans)``. The error is that stamp minus the host time at which the sim really
 sampled the batch's first scan.
 
 MODAQ 2's way, in the same run on the same reads: one paired read at start gives an offset

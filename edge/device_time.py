@@ -32,6 +32,9 @@ from dataclasses import dataclass
 _MAX_SLOPE_ERROR = 0.01
 """A fitted slope more than 1 % from nominal is a stall or a clock step, not drift."""
 
+_MIN_SLEW_STEP = 0.5
+"""A slewed batch's samples are at least half the fitted period apart (see `stamp`)."""
+
 
 @dataclass(slots=True)
 class _Pair:
@@ -80,6 +83,7 @@ class DeviceTimeFit:
         self._next_ns: int | None = None  # where the last stamped batch ended
         self._prev_last_ns: int | None = None  # the last stamped batch's last sample time
         self._last_read_ns = 0  # host time the newest read returned
+        self._stamped_restarts = 0  # `restarts` when the last batch was stamped
         self.slewed = 0
         """Batches stamped from the previous batch's end, not the fit (see `stamp`)."""
         self._clear_fit()
@@ -204,39 +208,57 @@ class DeviceTimeFit:
 
     def stamp(self, index: int, scans: int) -> tuple[int, float]:
         """(first-sample time, period) for the `scans` scans from `index`: the fit's — except
-        that a batch never starts before the previous one ended.
+        that sample times only ever increase and never pass the read that returned them.
 
         The fit moves back when a read faster than every earlier one lowers it (under load,
-        reads come late, then one comes quickly). When it moved back by at most half this
-        batch's length, the batch starts where the previous one ended and its period shrinks
-        so that it ends where the fit says: sample times only increase, and are back on the fit
-        by the batch's end (each sample is off by at most the move, shrinking to 0). A larger
-        move back is a clock step (the fit restarted): the fit's times are used as they are.
-
-        Nor is a slewed batch's last scan stamped later than its read returned (a batch of one
-        scan a second, after a late read, would otherwise be stamped in the future): it then
-        starts later than the fit but earlier than `prev` — still after the previous batch's
-        last sample, which was read before.
+        reads come late, then one comes quickly; the first minute's reads do it often). The
+        batch then starts where the previous one ended (`_slew`). A clock step is different:
+        the fit restarted (see `DeviceTimeFit`), and its times are used as they are — the host
+        clock did go back.
         """
         t0 = self.time_of(index)  # int ns: a float64 holds today's times to 256 ns only
         period = self.period_ns
-        span = period * scans
-        prev = self._next_ns
-        if prev is not None and t0 < prev:
-            fit_end = t0 + round(span)
-            if fit_end - prev >= 0.5 * span:
-                start = prev
-                if self._last is not None and self._last[0] == index + scans - 1:
-                    # The latest start whose last scan, ending at fit_end, is not after the read.
-                    read = self._last_read_ns
-                    start = min(start, read - (scans - 1) * (fit_end - read))
-                    if self._prev_last_ns is not None and start <= self._prev_last_ns:
-                        start = prev  # never back in time, that comes first
-                t0, period = start, (fit_end - start) / scans
-                self.slewed += 1
+        prev_last = self._prev_last_ns
+        next_ns = self._next_ns
+        if (
+            prev_last is not None
+            and next_ns is not None
+            and t0 < next_ns
+            and self.restarts == self._stamped_restarts
+        ):
+            t0, period = self._slew(index, scans, t0, period, prev_last, next_ns)
+            self.slewed += 1
+        self._stamped_restarts = self.restarts
         self._next_ns = t0 + round(period * scans)
         self._prev_last_ns = t0 + round(period * (scans - 1))
         return t0, period
+
+    def _slew(
+        self, index: int, scans: int, t0: int, period: float, prev_last: int, next_ns: int
+    ) -> tuple[int, float]:
+        """A batch the fit would start before the previous one ended, restamped.
+
+        It starts where the previous one ended (`next_ns`) and its samples close up so that
+        its last is where the fit puts it — never later than the read that returned it. Each
+        sample is off by at most the move, shrinking to 0; the next batch is on the fit. A move
+        back of more than half the batch is caught up over several batches, its samples at
+        least half a period apart. And when even that would end after the read (a read that
+        came quickly after a late one), the samples share the time between the previous sample
+        and the read. The previous sample comes first: its read came earlier, so there is room.
+        """
+        last = t0 + round(period * (scans - 1))  # the fit's time of this batch's last scan
+        read = self._last_read_ns if self._last and self._last[0] == index + scans - 1 else None
+        if read is not None:
+            last = min(last, read)
+        start = next_ns
+        step = (last - start) / (scans - 1) if scans > 1 else period
+        step = max(step, _MIN_SLEW_STEP * period)
+        if read is not None and read > prev_last and start + round(step * (scans - 1)) > read:
+            start = min(start, read - round(step * (scans - 1)))
+            if start <= prev_last:
+                step = (read - prev_last) / scans
+                start = read - round(step * (scans - 1))
+        return start, step
 
     @property
     def period_ns(self) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from edge.device_time import DeviceTimeFit
 
@@ -125,7 +126,7 @@ def test_a_power_cycled_device_or_a_host_clock_step_restarts_the_fit() -> None:
 def test_sample_times_only_increase_when_a_fast_read_lowers_the_fit() -> None:
     """Under load reads come late, then one comes quickly and the fit drops: the next batch
     would start before the previous one ended. It starts where that one ended instead, and
-    ends where the fit says."""
+    its last sample is where the fit says."""
     rate, scans = 2000.0, 100
     clock = DeviceTimeFit(rate)
     period = 1e9 / rate
@@ -136,8 +137,8 @@ def test_sample_times_only_increase_when_a_fast_read_lowers_the_fit() -> None:
         clock.observe(last, round(T0 + last * period + latency))
         t0, p = clock.stamp(last + 1 - scans, scans)
         times.append((t0 - T0) + np.arange(scans) * p)  # from T0: float64 holds ns there
-        # Whatever was stamped, the batch ends where the fit says the next one starts.
-        assert abs(times[-1][-1] + p - (clock.time_of(last + 1) - T0)) < 2
+        # Whatever was stamped, the batch's last sample is where the fit puts it.
+        assert abs(times[-1][-1] - (clock.time_of(last) - T0)) < 2
     t = np.concatenate(times)
     assert np.all(np.diff(t) > 0), "never back in time across batches"
     assert clock.slewed >= 1, "the fast read did move the fit back"
@@ -162,6 +163,69 @@ def test_a_slow_stream_is_never_stamped_after_its_read_returned() -> None:
     assert np.all(np.diff(stamps) > 0)
     assert clock.slewed >= 10, "the quick reads did move the fit back"
     assert clock.restarts == 0
+
+
+@pytest.mark.parametrize("scans", [2, 10, 100])
+def test_short_batches_with_jittery_reads_never_go_back_in_time_nor_ahead_of_their_read(
+    scans: int,
+) -> None:
+    """1 kHz, reads 0.05-9 ms late (under the 10 ms a clock step needs): while the fit
+    settles, a quick read moves it back by more than half a short batch. Each batch still
+    starts after the previous one's last sample (the fit catches up over several batches)
+    and ends no later than its read returned; its samples are at least half a period apart
+    unless the read came too soon after the previous batch for that."""
+    worst_back, worst_ahead, slewed, squeezed = 0, 0, 0, 0
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        clock = DeviceTimeFit(1000.0)
+        prev_last, prev_read = None, 0
+        for k in range(1, 200):
+            last = k * scans - 1
+            # A read returns after the one before it did.
+            read = max(T0 + last * 1_000_000 + int(rng.uniform(0.05e6, 9e6)), prev_read + 1000)
+            clock.observe(last, read)
+            t0, p = clock.stamp(last + 1 - scans, scans)
+            if prev_last is not None:
+                worst_back = max(worst_back, prev_last - t0 + 1)
+            prev_last, prev_read = t0 + round(p * (scans - 1)), read
+            worst_ahead = max(worst_ahead, prev_last - read)
+            squeezed += p < 0.5 * clock.period_ns - 1 and prev_last != read
+        slewed += clock.slewed
+        assert clock.restarts == 0
+    assert worst_back <= 0, f"a batch started {worst_back / 1e6:.3f} ms before the one before"
+    assert worst_ahead <= 0, f"a batch ended {worst_ahead / 1e6:.3f} ms after its read"
+    assert squeezed == 0, "samples closer than half a period with room for more"
+    assert slewed >= 40, "the quick reads did move the fit back"
+
+
+def test_moves_back_of_half_a_batch_and_more_are_absorbed_without_going_back() -> None:
+    """Reads 9 ms late for a while, then 4 ms, 3.5 ms, then quick ones: 10-scan batches at
+    1 kHz (10 ms) absorb moves of 5, 0.5 and 3.4 ms (the first two at half a batch and more,
+    which were stamped back in time as if the clock had stepped). Times only increase and
+    never pass their read, samples are at least half a period apart unless the batch ends at
+    its read (a quick read after late ones leaves little room after the previous sample),
+    and the stamps are back on the fit at once."""
+    clock = DeviceTimeFit(1000.0)
+    scans = 10
+    latencies = [9e6] * 30 + [4e6] * 5 + [3.5e6] * 5 + [0.1e6] * 10
+    stamps: list[np.ndarray] = []
+    slewed = []
+    for k, latency in enumerate(latencies, start=1):
+        last = k * scans - 1
+        read = T0 + last * 1_000_000 + int(latency)
+        clock.observe(last, read)
+        before = clock.slewed
+        t0, p = clock.stamp(last + 1 - scans, scans)
+        slewed.append(clock.slewed - before)
+        stamps.append((t0 - T0) + np.arange(scans) * p)
+        assert stamps[-1][-1] <= read - T0
+        assert p >= 0.5 * clock.period_ns - 1 or stamps[-1][-1] == read - T0
+    t = np.concatenate(stamps)
+    assert np.all(np.diff(t) > 0)
+    assert clock.restarts == 0
+    assert sum(slewed[30:]) >= 3, "each drop moved the fit back"
+    assert slewed[-1] == 0
+    assert abs(stamps[-1][-1] - (clock.time_of(len(latencies) * scans - 1) - T0)) < 2
 
 
 def test_a_clock_step_back_is_not_smoothed_over() -> None:
