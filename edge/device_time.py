@@ -36,6 +36,15 @@ _MIN_SLEW_STEP = 0.5
 """A slewed batch's samples are at least half the fitted period apart (see `stamp`)."""
 
 
+@dataclass(frozen=True, slots=True)
+class Restart:
+    """The fit started over between two batches (see `DeviceTimeFit.restarted`)."""
+
+    jump_ns: int
+    """The new batch's first time minus where the batch before ended: < 0 is back in time."""
+    why: str
+
+
 @dataclass(slots=True)
 class _Pair:
     x: float
@@ -84,6 +93,10 @@ class DeviceTimeFit:
         self._prev_last_ns: int | None = None  # the last stamped batch's last sample time
         self._last_read_ns = 0  # host time the newest read returned
         self._stamped_restarts = 0  # `restarts` when the last batch was stamped
+        self._restart_why = ""
+        self.restarted: Restart | None = None
+        """Set by `stamp` when the fit restarted since the batch before: how far this batch's
+        times jumped from where that one ended, and why; None otherwise."""
         self.slewed = 0
         """Batches stamped from the previous batch's end, not the fit (see `stamp`)."""
         self._clear_fit()
@@ -109,7 +122,8 @@ class DeviceTimeFit:
         """
         if device_ns is None:
             if self._last is not None and last_index <= self._last[0]:
-                self._restart()  # reopened: no device clock says how the two runs relate
+                # Reopened: no device clock says how the two runs relate.
+                self._restart("the stream reopened (no device clock relates the runs)")
             device_ns = round(last_index * self.nominal_period_ns)
         else:
             device_ns = self._map_segment(last_index, host_ns, device_ns)
@@ -125,8 +139,10 @@ class DeviceTimeFit:
             return device_ns
         if index <= last[0] or device_ns <= last[1]:
             # A new stream (index restarted) or a device clock that went back (power cycle).
-            if device_ns <= last[1] or not self._explains(device_ns, host_ns):
-                self._restart()
+            if device_ns <= last[1]:
+                self._restart("the device clock went back (power-cycled)")
+            elif not self._explains(device_ns, host_ns):
+                self._restart("the stream reopened and the host clock disagrees with the fit")
             self._segment = (index, device_ns)
             return device_ns
         index0, device0 = self._segment
@@ -143,9 +159,10 @@ class DeviceTimeFit:
         r = self._residual(device_ns - self._origin[0], host_ns - self._origin[1])
         return -self._step_back < r < self._step_ahead
 
-    def _restart(self) -> None:
+    def _restart(self, why: str) -> None:
         if self._origin is not None:
             self.restarts += 1
+            self._restart_why = why
         self._clear_fit()
         self._segment = None
 
@@ -161,7 +178,12 @@ class DeviceTimeFit:
             r = self._residual(x, y)
             self._ahead_run = self._ahead_run + 1 if r > self._step_ahead else 0
             if r < -self._step_back or self._ahead_run >= self._step_ahead_reads:
-                self._restart()
+                self._restart(
+                    f"the host clock stepped back (a read {-r / 1e6:.1f} ms before the fit)"
+                    if r < 0
+                    else f"the host clock stepped ahead ({self._ahead_run} reads each more "
+                    f"than {self._step_ahead / 1e9:g} s after the fit)"
+                )
                 self._segment = self._last
                 self._add(device_ns, host_ns)
                 return
@@ -228,6 +250,9 @@ class DeviceTimeFit:
         ):
             t0, period = self._slew(index, scans, t0, period, prev_last, next_ns)
             self.slewed += 1
+        self.restarted = None
+        if self.restarts != self._stamped_restarts and next_ns is not None:
+            self.restarted = Restart(t0 - next_ns, self._restart_why)
         self._stamped_restarts = self.restarts
         self._next_ns = t0 + round(period * scans)
         self._prev_last_ns = t0 + round(period * (scans - 1))

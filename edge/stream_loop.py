@@ -20,7 +20,7 @@ import numpy.typing as npt
 import zenoh
 
 from edge.config.node import SpoolConfig
-from edge.device_time import DeviceTimeFit
+from edge.device_time import DeviceTimeFit, Restart
 from edge.drivers.base import Driver
 from edge.drivers.table import StreamConfig, create_driver
 from edge.errors import DriverError
@@ -220,6 +220,8 @@ class StreamLoop:
             self.time_fit.observe(index + scans - 1, block.host_ns, block.device_ns)
             t0, period = self.time_fit.stamp(index, scans)
             seq = c.next_sequence
+            if (restart := self.time_fit.restarted) is not None:
+                self._time_restarted(restart, seq)
             payload = self.encoder.encode(
                 seq, t0, period, values, self.time_sync.quality, block.status
             )
@@ -243,6 +245,19 @@ class StreamLoop:
             c.next_sequence = seq + 1
             c.batches += 1
             c.scans += scans
+
+    def _time_restarted(self, restart: Restart, seq: int) -> None:
+        """The device-time fit started over: say so, with how far sample times jumped."""
+        self.events.emit(
+            logging.WARNING if restart.jump_ns < 0 else logging.INFO,
+            self.name,
+            "time_restart",
+            f"sample times from a new fit from sequence {seq}: {restart.why}; they "
+            f"{'go back' if restart.jump_ns < 0 else 'jump ahead'} "
+            f"{abs(restart.jump_ns) / 1e6:.3f} ms from where the batch before ended",
+            sequence=seq,
+            jump_ns=restart.jump_ns,
+        )
 
     def _run_hook(
         self, hook: Callable[[npt.NDArray[np.float64]], None], values: npt.NDArray[np.float64]

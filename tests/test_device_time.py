@@ -234,9 +234,60 @@ def test_a_clock_step_back_is_not_smoothed_over() -> None:
         last = k * 100 - 1
         clock.observe(last, T0 + last * 1_000_000 + 1000, last * 1_000_000)
         clock.stamp(last - 99, 100)
+        assert clock.restarted is None
     step = 2_000_000_000  # the host clock steps back 2 s
     last = 50 * 100 - 1
     clock.observe(last, T0 + last * 1_000_000 - step, last * 1_000_000)
     t0, _ = clock.stamp(last - 99, 100)
     assert clock.restarts == 1
     assert t0 < T0 + (last - 99) * 1_000_000 - step + 1_000_000, "the new clock's time, as is"
+    assert clock.restarted is not None, "said once, at the first batch on the new fit"
+    assert -step - 1_000_000 < clock.restarted.jump_ns < -step + 1_000_000
+    assert clock.restarted.why.startswith("the host clock stepped back (a read 2000")
+    last += 100
+    clock.observe(last, T0 + last * 1_000_000 - step + 1000, last * 1_000_000)
+    clock.stamp(last - 99, 100)
+    assert clock.restarted is None
+
+
+def _stamped_run(clock: DeviceTimeFit, batches: int, device: bool) -> int:
+    """`batches` reads of 100 scans at 1 kHz, each 1 µs late, stamped, with a device clock or
+    without; return the next index."""
+    for k in range(batches):
+        last = (k + 1) * 100 - 1
+        clock.observe(
+            last, T0 + last * 1_000_000 + 1000, 7 * 10**9 + last * 10**6 if device else None
+        )
+        clock.stamp(last - 99, 100)
+        assert clock.restarted is None
+    return batches * 100
+
+
+@pytest.mark.parametrize(
+    ("what", "why", "ahead"),
+    [
+        ("reopened", "the stream reopened (no device clock relates the runs)", True),
+        ("power-cycled", "the device clock went back (power-cycled)", True),
+        ("stepped ahead", "the host clock stepped ahead (20 reads each more than 1 s", True),
+    ],
+)
+def test_each_restart_says_why_and_how_far_times_jumped(what: str, why: str, ahead: bool) -> None:
+    clock = DeviceTimeFit(1000.0)
+    nxt = _stamped_run(clock, 30, device=what == "power-cycled")
+    if what == "reopened":  # 5 s later, scan index from 0: nothing relates it to the last run
+        clock.observe(99, T0 + (nxt + 99) * 1_000_000 + 5_000_000_000)
+        clock.stamp(0, 100)
+    elif what == "power-cycled":  # 5 s later, its clock from near 0
+        clock.observe(99, T0 + (nxt + 99) * 1_000_000 + 5_000_000_000, 99 * 10**6)
+        clock.stamp(0, 100)
+    else:  # the host clock 2 min ahead: 20 reads before it is believed
+        for k in range(20):
+            last = nxt + (k + 1) * 100 - 1
+            clock.observe(last, T0 + last * 1_000_000 + 120_000_000_000)
+            clock.stamp(last - 99, 100)
+            if k < 19:
+                assert clock.restarted is None
+    assert clock.restarts == 1
+    assert clock.restarted is not None
+    assert clock.restarted.why.startswith(why)
+    assert (clock.restarted.jump_ns > 0) is ahead

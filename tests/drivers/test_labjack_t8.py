@@ -6,14 +6,19 @@ from __future__ import annotations
 
 import inspect
 import json
+import logging
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from edge.config.load import parse_config
+from edge.config.node import SpoolConfig
 from edge.device_time import DeviceTimeFit
 from edge.drivers.base import Block
 from edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs
@@ -27,6 +32,9 @@ from edge.errors import (
     DeviceError,
     DeviceNotFound,
 )
+from edge.event_publisher import EventPublisher
+from edge.spool import StreamSpool
+from edge.stream_loop import StreamLoop
 from edge.wire import SampleStatus
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
@@ -245,6 +253,69 @@ def test_device_time_fit_survives_a_stream_restart_and_restarts_after_a_power_cy
     index = 0
     run(5)
     assert fit.restarts == 1
+
+
+class SteppableTime(VirtualTime):
+    """Virtual time whose CLOCK_REALTIME can be stepped, as an NTP daemon or an operator's
+    `date -s` steps a host's (its monotonic clock runs on)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.step_ns = 0
+
+    def time_ns(self) -> int:
+        return super().time_ns() + self.step_ns
+
+
+class Events(EventPublisher):
+    def __init__(self) -> None:
+        super().__init__(None, "fleetdaq/s/wec/events", "wec")
+        self.said: list[tuple[int, str, str, dict[str, object]]] = []
+
+    def emit(self, level: int, source: str, tag: str, message: str, /, **fields: object) -> None:
+        self.said.append((level, tag, message, fields))
+
+
+def test_a_host_clock_step_back_is_an_event_with_how_far_sample_times_went_back(
+    tmp_path: Path,
+) -> None:
+    """The agent's acquisition loop on the T8 driver and the fake `ljm`: the host clock steps
+    50 ms back mid-run. The fit restarts and the batches after the step are stamped on the new
+    clock (times go back), and the loop says so once, with the jump and the sequence."""
+    cfg = _stream("{seed: 3}", rate=10_000, scans=500, chans=2)
+    clock = SteppableTime()
+    assert cfg.sim is not None
+    driver = LabJackT8(cfg, transport=SimLJM(cfg.sim, clock), clock=clock)
+    spool_cfg = SpoolConfig()
+    spool = StreamSpool(tmp_path / "spool", spool_cfg.max_bytes, spool_cfg.max_age_s)
+    events = Events()
+    loop = StreamLoop("s", "wec", "t8", cfg, None, events, spool, spool_cfg, driver=driver)
+    loop.start()
+    try:
+        _wait(lambda: loop.counters.batches >= 40, "40 batches before the step")
+        clock.step_ns = -50_000_000
+        _wait(lambda: any(tag == "time_restart" for _, tag, _, _ in events.said), "the event")
+    finally:
+        loop.stop()
+        loop.join(5.0)
+    (said,) = [e for e in events.said if e[1] == "time_restart"]
+    level, _, message, fields = said
+    assert level == logging.WARNING
+    assert "the host clock stepped back" in message
+    assert "go back" in message
+    jump = fields["jump_ns"]
+    assert isinstance(jump, int)
+    assert -55_000_000 < jump < -45_000_000, jump  # the step, give or take read latency
+    assert loop.time_fit.restarts == 1
+    assert f"from sequence {fields['sequence']}:" in message
+
+
+def _wait(cond: Callable[[], bool], what: str, timeout: float = 30.0) -> None:
+    done = threading.Event()
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        done.wait(0.01)
 
 
 class WatchedSystemTime(SystemTime):
