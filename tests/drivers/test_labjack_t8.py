@@ -10,8 +10,6 @@ import logging
 import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +36,7 @@ from edge.stream_loop import StreamLoop
 from edge.wire import SampleStatus
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
-from tests.procs import REPO
+from tests.procs import REPO, wait_until
 
 TWO32 = 1 << 32
 
@@ -275,6 +273,9 @@ class Events(EventPublisher):
     def emit(self, level: int, source: str, tag: str, message: str, /, **fields: object) -> None:
         self.said.append((level, tag, message, fields))
 
+    def tagged(self, tag: str) -> list[tuple[int, str, str, dict[str, object]]]:
+        return [e for e in self.said if e[1] == tag]
+
 
 def test_a_host_clock_step_back_is_an_event_with_how_far_sample_times_went_back(
     tmp_path: Path,
@@ -292,13 +293,13 @@ def test_a_host_clock_step_back_is_an_event_with_how_far_sample_times_went_back(
     loop = StreamLoop("s", "wec", "t8", cfg, None, events, spool, spool_cfg, driver=driver)
     loop.start()
     try:
-        _wait(lambda: loop.counters.batches >= 40, "40 batches before the step")
+        wait_until(lambda: loop.counters.batches >= 40, 30, "40 batches before the step", 0.01)
         clock.step_ns = -50_000_000
-        _wait(lambda: any(tag == "time_restart" for _, tag, _, _ in events.said), "the event")
+        wait_until(lambda: events.tagged("time_restart"), 30, "a time_restart event", 0.01)
     finally:
         loop.stop()
         loop.join(5.0)
-    (said,) = [e for e in events.said if e[1] == "time_restart"]
+    (said,) = events.tagged("time_restart")
     level, _, message, fields = said
     assert level == logging.WARNING
     assert "the host clock stepped back" in message
@@ -308,14 +309,6 @@ def test_a_host_clock_step_back_is_an_event_with_how_far_sample_times_went_back(
     assert -55_000_000 < jump < -45_000_000, jump  # the step, give or take read latency
     assert loop.time_fit.restarts == 1
     assert f"from sequence {fields['sequence']}:" in message
-
-
-def _wait(cond: Callable[[], bool], what: str, timeout: float = 30.0) -> None:
-    done = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        done.wait(0.01)
 
 
 class WatchedSystemTime(SystemTime):
