@@ -120,6 +120,21 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def browsers_cpu_s(ns: str) -> float:
+    """utime + stime of every Chromium process in the namespace `ns` so far, seconds (children
+    that ended are not counted: take it over a window in which none ends)."""
+    out = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, check=False)
+    total = 0.0
+    for pid in out.stdout.split():
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        if stat[stat.index("(") + 1 : stat.rindex(")")].startswith(("chrom", "headless")):
+            total += _stat_cpu_s(stat)
+    return total
+
+
 def measure(pid: int, seconds: float) -> tuple[float, dict[str, float]]:
     """The process's CPU share of one core over `seconds` (the measurement itself), and each
     thread name's share."""
@@ -332,7 +347,9 @@ def run(window: float, warmup: float, decoy: bool = False) -> dict[str, Any]:
         time.sleep(warmup)
         (control / "start").touch()
         log(f"B: hub with two browsers plotting and /metrics scraped, {window:g} s")
+        chromium0, t0 = browsers_cpu_s(ns.name), time.monotonic()
         b, b_threads = measure(hub.pid, window)
+        chromium = (browsers_cpu_s(ns.name) - chromium0) / (time.monotonic() - t0)
         (control / "stop").touch()
         wait_for((control / "delays.json").exists, 60, "the browsers' figures")
         driver.wait(60)
@@ -364,6 +381,9 @@ def run(window: float, warmup: float, decoy: bool = False) -> dict[str, Any]:
         "extra_in_dashboard_thread_pct": loop,
         "extra_elsewhere_pct": round(100 * (b - base) - loop, 2),
         "extra_by_thread_pct": threads,
+        # What the two Chromiums drawing take of this same 2-core machine in B: the neighbour
+        # whose share of caches and cores shows as `extra_elsewhere_pct`.
+        "browsers_cpu_pct": round(100 * chromium, 1),
         "delay_ms_p50": round(statistics.median(delays), 1) if delays else None,
         "delay_ms_p99": round(percentile(delays, 0.99), 1) if delays else None,
         "delay_ms_max": round(max(delays), 1) if delays else None,
