@@ -56,6 +56,7 @@ bench: $(STAMP)
 	$(PY) bench/control.py
 	$(PY) bench/foxglove.py
 	$(PY) bench/dashboard.py
+	$(PY) bench/web_floor.py
 	$(PY) bench/fanin.py
 
 clean:
