@@ -286,47 +286,51 @@ DECOY_SITE = (
 )
 
 
-def run(window: float, warmup: float, decoy: bool = False) -> dict[str, Any]:
+def write_site(tmp: Path, text: str, name: str) -> Path:
+    """`text` (SITE or DECOY_SITE) as `tmp`/`name`, its users file beside it."""
     from argon2 import PasswordHasher
 
     from hub.web.users import write_users
 
-    tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-dashboard-"))
     users = tmp / "users"
-    write_users(users, {"bench": PasswordHasher().hash("not used")})
-    site = tmp / "site.yaml"
-    site.write_text(SITE.format(users=users))
+    if not users.exists():
+        write_users(users, {"bench": PasswordHasher().hash("not used")})
+    site = tmp / name
+    site.write_text(text.format(users=users))
+    return site
+
+
+def start_hub_and_edge(
+    ns: Namespace, tmp: Path, site: Path, prefix: str = ""
+) -> subprocess.Popen[bytes]:
+    """A hub of `site` (once its dashboard serves) and its edge `wec`, their data, spool and
+    logs in `tmp` named with `prefix`; the hub's process."""
+    hub_log = tmp / f"{prefix}hub.log"
+    hub = ns.start(
+        [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--data",
+         str(tmp / f"{prefix}data")],
+        hub_log,
+    )  # fmt: skip
+    wait_for(lambda: "dashboard on" in hub_log.read_text(), 60, f"the {prefix}hub")
+    ns.start(
+        [sys.executable, "-m", "fleetdaq", "edge", "--config", str(site), "--node", "wec",
+         "--spool", str(tmp / f"{prefix}spool")],
+        tmp / f"{prefix}edge.log",
+    )  # fmt: skip
+    return hub
+
+
+def run(window: float, warmup: float, decoy: bool = False) -> dict[str, Any]:
+    tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-dashboard-"))
+    site = write_site(tmp, SITE, "site.yaml")
     control = tmp / "control"
     control.mkdir()
     ns = Namespace()
     try:
-        hub = ns.start(
-            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--data",
-             str(tmp / "data")],
-            tmp / "hub.log",
-        )  # fmt: skip
-        wait_for(lambda: "dashboard on" in (tmp / "hub.log").read_text(), 60, "the hub")
-        ns.start(
-            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(site), "--node", "wec",
-             "--spool", str(tmp / "spool")],
-            tmp / "edge.log",
-        )  # fmt: skip
+        hub = start_hub_and_edge(ns, tmp, site)
         url = "http://127.0.0.1:8080/"
         if decoy:
-            (tmp / "decoy.yaml").write_text(DECOY_SITE.format(users=users))
-            ns.start(
-                [sys.executable, "-m", "fleetdaq", "hub", "--config", str(tmp / "decoy.yaml"),
-                 "--data", str(tmp / "decoy-data")],
-                tmp / "decoy-hub.log",
-            )  # fmt: skip
-            wait_for(
-                lambda: "dashboard on" in (tmp / "decoy-hub.log").read_text(), 60, "the decoy hub"
-            )
-            ns.start(
-                [sys.executable, "-m", "fleetdaq", "edge", "--config", str(tmp / "decoy.yaml"),
-                 "--node", "wec", "--spool", str(tmp / "decoy-spool")],
-                tmp / "decoy-edge.log",
-            )  # fmt: skip
+            start_hub_and_edge(ns, tmp, write_site(tmp, DECOY_SITE, "decoy.yaml"), "decoy-")
             url = "http://127.0.0.1:8081/"
             log("control: a decoy hub and edge run throughout; the browsers plot from it")
         log(f"hub pid {hub.pid} and edge started; warming up {warmup:g} s")

@@ -226,29 +226,12 @@ def measure_load(
 
 
 def run(window: float, warmup: float) -> dict[str, Any]:
-    from argon2 import PasswordHasher
-
-    from hub.web.users import write_users
-
     tmp = Path(tempfile.mkdtemp(prefix="fleetdaq-bench-web-floor-"))
-    users = tmp / "users"
-    write_users(users, {"bench": PasswordHasher().hash("not used")})
-    site = tmp / "site.yaml"
-    site.write_text(dash.SITE.format(users=users))
+    site = dash.write_site(tmp, dash.SITE, "site.yaml")
     ns = dash.Namespace()
     floor: dict[str, float] = {}
     try:
-        hub = ns.start(
-            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(site), "--data",
-             str(tmp / "data")],
-            tmp / "hub.log",
-        )  # fmt: skip
-        dash.wait_for(lambda: "dashboard on" in (tmp / "hub.log").read_text(), 60, "the hub")
-        ns.start(
-            [sys.executable, "-m", "fleetdaq", "edge", "--config", str(site), "--node", "wec",
-             "--spool", str(tmp / "spool")],
-            tmp / "edge.log",
-        )  # fmt: skip
+        hub = dash.start_hub_and_edge(ns, tmp, site)
         log(f"hub and edge started; warming up {warmup:g} s")
         time.sleep(warmup)
         sizes = message_sizes_in(ns, tmp)
