@@ -65,9 +65,11 @@ class StreamReports:
             "recorder",
             "acquisition_gap",
             f"{st.node}/{st.stream}: {gap_s:.3f} s without scans before sequence {sequence} "
-            "(the edge was not acquiring)",
+            "(the edge was not acquiring, or its sample times jumped ahead: then the edge's "
+            "time_restart event names this sequence)",
             node=st.node,
             stream=st.stream,
+            sequence=sequence,
             gap_s=round(gap_s, 6),
         )
 
