@@ -225,25 +225,13 @@ class Rig:
 
     def leveled_events(self) -> list[tuple[str, str, str]]:
         """(level name, node, tag) of every recorded event."""
-        files = sorted(self.data.glob("*/*.mcap"))
-        out = []
-        with AnyReader(files) as reader:
-            conns = [c for c in reader.connections if c.topic == "/events"]
-            for c, _, raw in reader.messages(conns):
-                m = reader.deserialize(raw, c.msgtype)
-                out.append((logging.getLevelName(m.level).lower(), m.node, m.tag))
-        return out
+        return [
+            (logging.getLevelName(m.level).lower(), m.node, m.tag) for m in self.recorded_events()
+        ]
 
     def timed_events(self) -> list[tuple[int, str, str, str]]:
         """(time ns, node, tag, message) of every recorded event, in time order."""
-        files = sorted(self.data.glob("*/*.mcap"))
-        out = []
-        with AnyReader(files) as reader:
-            conns = [c for c in reader.connections if c.topic == "/events"]
-            for c, _, raw in reader.messages(conns):
-                m = reader.deserialize(raw, c.msgtype)
-                out.append((m.time_ns, m.node, m.tag, m.message))
-        return sorted(out)
+        return sorted((m.time_ns, m.node, m.tag, m.message) for m in self.recorded_events())
 
 
 @pytest.fixture
