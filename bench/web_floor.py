@@ -136,6 +136,7 @@ def serve(load: str, frame_bytes: int, state_bytes: int, metrics_bytes: int) -> 
 def clients(count: int, scrape: bool, seconds: float) -> None:
     import aiohttp
 
+    CLOSED = (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR)
     url = f"http://127.0.0.1:{SERVER_PORT}"
     end = time.monotonic() + seconds
 
@@ -143,12 +144,17 @@ def clients(count: int, scrape: bool, seconds: float) -> None:
         async with aiohttp.ClientSession() as s, s.ws_connect(url + "/live") as ws:
             while time.monotonic() < end:
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(ws.receive(), 1.0)
+                    m = await asyncio.wait_for(ws.receive(), 1.0)
+                    if m.type in CLOSED:  # the server was ended: no spinning on its socket
+                        return
 
     def scraper() -> None:
         while time.monotonic() < end:
-            with urllib.request.urlopen(url + "/metrics", timeout=5) as r:
-                r.read()
+            try:
+                with urllib.request.urlopen(url + "/metrics", timeout=5) as r:
+                    r.read()
+            except OSError:  # the server was ended
+                return
             time.sleep(1.0)
 
     if scrape:
@@ -188,6 +194,8 @@ def message_sizes(url: str) -> dict[str, int]:
                     state = len(m.data.encode())
                 elif m.type == aiohttp.WSMsgType.BINARY:
                     frames.append(len(m.data))
+                elif m.type != aiohttp.WSMsgType.TEXT:
+                    raise RuntimeError(f"the hub's live socket ended: {m.type.name}")
         return state, sorted(frames[2:])[len(frames[2:]) // 2]  # the first is whole
 
     state, frame = asyncio.run(live())
