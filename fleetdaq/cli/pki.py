@@ -221,8 +221,18 @@ def acl(config: str) -> None:
 @click.option("--hub", is_flag=True, help="The main hub's pair (hub.crt).")
 @click.option("--partition", "partitions", multiple=True, help="A partition hub's own pair.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object.")
+@click.option(
+    "--root",
+    type=click.Path(file_okay=False),
+    help="The folder the site file's paths are under (a chroot; fleet status's fleetdaq_prefix).",
+)
 def check_certs(
-    config: str, nodes: tuple[str, ...], hub: bool, partitions: tuple[str, ...], as_json: bool
+    config: str,
+    nodes: tuple[str, ...],
+    hub: bool,
+    partitions: tuple[str, ...],
+    as_json: bool,
+    root: str | None,
 ) -> None:
     """The certificates this machine connects with (security.pki_dir): the site CA and the
     pairs named (every pair in the folder when none is), each checked for its dates (ending
@@ -234,6 +244,10 @@ def check_certs(
     from fleetdaq.certificate_check import check
 
     site = load_site(config)
+    if root and Path(site.security.pki_dir).is_absolute():  # as the services see it, from outside
+        pki_dir = Path(root) / Path(site.security.pki_dir).relative_to("/")
+        security = site.security.model_copy(update={"pki_dir": str(pki_dir)})
+        site = site.model_copy(update={"security": security})
     for n in nodes:
         if n not in site.nodes:
             fail(f"pki check: the site file {config} has no node {n!r}", 2)

@@ -28,6 +28,15 @@ from fleetdaq.fleet.status import (
     TimeView,
 )
 
+NO_OPERATOR_PAIR = "security.tls is on, but "
+"""How `fleetdaq rec status` says it has no operator pair to ask the hub with."""
+SET_PAIR = " (set FLEETDAQ_CERT and FLEETDAQ_KEY)"
+OPERATOR_PAIR_NEEDED = (
+    "on a TLS site the SSH user asks the hub as an operator: give that user on this host a "
+    "view pair (fleetdaq pki issue NAME --operator --role view, NAME under security.operators; "
+    "copy it to ~/.config/fleetdaq/operator.crt and operator.key there)"
+)
+
 
 def _last_line(text: str) -> str:
     lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
@@ -170,6 +179,8 @@ class _Probe:
 
     def certificates(self) -> None:
         args = [self.layout.fleetdaq, "pki", "check", "--json", "--config", self.layout.site_file]
+        if self.host.prefix:  # the site file's pki_dir is the services' path, under the prefix
+            args += ["--root", self.host.prefix]
         if self.host.is_edge:
             args += ["--node", self.host.node]
         if self.host.is_hub:
@@ -198,7 +209,10 @@ class _Probe:
         try:
             view = parse_recorder(out)
         except ValueError:
-            self.problems.append(f"recorder: {_last_line(err or out) or f'exit {status}'}")
+            said = _last_line(err or out) or f"exit {status}"
+            if said.startswith(NO_OPERATOR_PAIR):
+                said = f"not asked: {said.removesuffix(SET_PAIR)}; {OPERATOR_PAIR_NEEDED}"
+            self.problems.append(f"recorder: {said}")
             return
         self.fields["recorder"] = view
         if view.write_errors:

@@ -278,6 +278,57 @@ def test_a_second_run_changes_nothing(deploy: Deploy):
     )
 
 
+def test_fleet_status_sees_each_deployed_host_as_the_playbook_left_it(deploy: Deploy):
+    """`fleetdaq fleet status` over the inventory the playbook ran with, from the control
+    machine: each host's own deployed fleetdaq answers (the wheel's version), each holds the
+    site CA the control machine has and its own pair, read where the site file puts them. No
+    service runs on these hosts (no systemd), so the hubs' recorders cannot be reached: said,
+    and nothing else is wrong with any host."""
+    import json
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+
+    assert deploy.first.returncode == 0, "the first run failed"
+    r = deploy.lab.run_in_control(
+        [
+            sys.executable, "-m", "fleetdaq", "fleet", "status", "-i", str(deploy.inventory),
+            "--known-hosts", str(deploy.root / "known_hosts"),
+            "--identity", str(deploy.lab.client_key), "--json",
+        ],
+        deploy.env,
+        timeout=300,
+    )  # fmt: skip
+    assert "Traceback" not in r.stderr, r.stderr
+    out = json.loads(r.stdout)
+    hosts = {h["host"]: h for h in out["hosts"]}
+    assert list(hosts) == ["controller", "bay2", "wec", "shore-pi"]
+    ca = x509.load_pem_x509_certificate((deploy.root / "pki" / "ca.crt").read_bytes())
+    for name, h in hosts.items():
+        assert h["reachable"], h
+        assert h["version"] == "0.1.0", h
+        certs = h["certificates"]
+        assert certs["tls"], (name, certs)
+        assert certs["worst"] == "ok", (name, certs)
+        assert certs["ca_fingerprint"] == ca.fingerprint(hashes.SHA256()).hex(), name
+        assert 800 < certs["days_left"] <= 825, (name, certs)
+    assert hosts["wec"]["node"] == "wec"
+    assert hosts["shore-pi"]["node"] == "shore"
+    # What is wrong is only what is not there: ptp4l on the hosts the inventory sets up for PTP
+    # (unless this machine runs its own), and on the hubs an operator pair for the SSH user to
+    # ask the recorder with (the playbook deploys none: each site chooses who may look).
+    for name, h in hosts.items():
+        problems = [p for p in h["problems"] if not p.startswith("time: ")]
+        if name in ("controller", "bay2"):
+            (problem,) = problems
+            assert problem.startswith("recorder: not asked: security.tls is on, but "), problem
+            assert "--operator --role view" in problem, problem
+        else:
+            assert problems == [], (name, problems)
+    assert out["problems"] == []  # one site CA across the fleet
+    assert r.returncode == 1, r.stdout
+
+
 def verify(analyze: str, unit: Path) -> str:
     r = subprocess.run(
         [analyze, "verify", "--man=no", str(unit)],

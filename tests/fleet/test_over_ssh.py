@@ -546,7 +546,8 @@ def test_each_host_says_when_its_certificates_end_and_which_ca_it_holds(fleet: F
         init(pki, f"fleettest-{ca_name}", ["127.0.0.1"])
         issue_node(pki, node, days=days)
         text = SITE.format(port=free_port()).replace("tcp/", "tls/")
-        text += f"security: {{tls: true, pki_dir: {pki}}}\n"
+        # The services' path, as Ansible renders it: the host's fleetdaq finds it under the prefix.
+        text += "security: {tls: true, pki_dir: /etc/fleetdaq/pki}\n"
         (sshd.fs / tls_site.lstrip("/")).write_text(text)
     inv = fleet.inventory(
         "certificates",
