@@ -202,3 +202,23 @@ def test_a_pki_folder_this_user_may_not_read_is_not_checked_and_not_held_against
     assert view.worst == "not_permitted"
     assert len(view.unchecked) == 2
     assert view.problems == ()
+
+
+def test_with_a_root_the_site_files_pki_dir_is_read_under_it(tmp_path: Path):
+    """A chroot's site file names its PKI folder as its services see it; `--root` checks it from
+    outside (fleet status passes a host's fleetdaq_prefix)."""
+    root = tmp_path / "chroot"
+    pki = root / "etc" / "fleetdaq" / "pki"
+    init(pki, "checks", ["127.0.0.1"])
+    issue_node(pki, "env")
+    site = site_file(tmp_path, Path("/etc/fleetdaq/pki"))
+
+    r = pki_check("--config", str(site), "--node", "env", "--json", "--root", str(root))
+    assert r.returncode == 0, r.stdout + r.stderr
+    found = json.loads(r.stdout)
+    assert found["pki_dir"] == str(pki)
+    assert {c["state"] for c in found["certificates"]} == {"ok"}
+
+    # Without it, the path as it is: not this machine's PKI folder.
+    r = pki_check("--config", str(site), "--node", "env", "--json")
+    assert json.loads(r.stdout)["pki_dir"] == "/etc/fleetdaq/pki", r.stderr
