@@ -92,6 +92,7 @@ def parse_certificates(stdout: str) -> CertificatesView:
             worst=max((str(c["state"]) for c in found), key=STATES.index, default="ok"),
             problems=tuple(str(p) for p in d["problems"]),
             unchecked=tuple(str(p) for p in d.get("unchecked", ())),
+            pki_dir=str(d.get("pki_dir", "")),
         )
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise ValueError(f"not a certificate check: {err}") from err
@@ -121,11 +122,12 @@ class _Probe:
         self.notes: list[str] = []
         self.fields: dict[str, Any] = {}
 
-    def run(self, *args: str) -> tuple[int, str, str]:
+    def run(self, *args: str, env: str = "") -> tuple[int, str, str]:
+        """`args` on the host; `env`: ``NAME=value ...`` before them (a shell line)."""
         remaining = self.deadline - time.monotonic()
         if remaining <= 0:
             raise CommandTimeout(f"no time left for {args[-1]}")
-        result = self.conn.run(shlex.join(args), remaining)
+        result = self.conn.run(f"{env} {shlex.join(args)}" if env else shlex.join(args), remaining)
         return result.status, result.stdout, result.stderr
 
     def facts(self) -> Facts:
@@ -201,11 +203,23 @@ class _Probe:
         self.problems.extend(f"certificate: {p}" for p in view.problems)
         self.notes.extend(f"certificate {p}" for p in view.unchecked)
 
+    def _operator_under_prefix(self) -> str:
+        """With a prefix, the operator's files where the host's own would be under it: the
+        login user's pair (``$HOME/.config/fleetdaq``) and the site CA beside the host's pairs."""
+        if not self.host.prefix:
+            return ""
+        root = shlex.quote(self.host.prefix.rstrip("/"))
+        env = f'XDG_CONFIG_HOME={root}"$HOME/.config"'
+        certs = self.fields.get("certificates")
+        if isinstance(certs, CertificatesView) and certs.pki_dir:
+            env += f" FLEETDAQ_CA={shlex.quote(certs.pki_dir + '/ca.crt')}"
+        return env
+
     def recorder(self) -> None:
         args = [self.layout.fleetdaq, "rec", "status", "--json", "--config", self.layout.site_file]
         if self.host.partition is not None:  # a partition hub's own recorder
             args += ["--partition", self.host.partition]
-        status, out, err = self.run(*args)
+        status, out, err = self.run(*args, env=self._operator_under_prefix())
         try:
             view = parse_recorder(out)
         except ValueError:

@@ -57,6 +57,8 @@ class CertificatesView:
     problems: tuple[str, ...] = ()
     unchecked: tuple[str, ...] = ()
     """Certificates the SSH user may not read (not held against the host)."""
+    pki_dir: str = ""
+    """The folder the host's fleetdaq read them from."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,6 +15,7 @@ is touched."""
 from __future__ import annotations
 
 import os
+import pwd
 import re
 import shutil
 import stat
@@ -41,6 +42,7 @@ hub:
 security:
   tls: true
   pki_dir: /etc/fleetdaq/pki
+  operators: {fleet-status: view}
 nodes:
   wec:
     connect: ["tls/{{ hostvars[groups['hub'][0]].ansible_host }}:7447"]
@@ -52,6 +54,8 @@ nodes:
     streams:
       env: {driver: environment_sim, rate_hz: 1, channels: [{name: air, unit: degC}]}
 """
+
+LOGIN_HOME = pwd.getpwnam(USER).pw_dir
 
 RECAP = re.compile(
     r"^(\S+)\s*:\s*ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.M
@@ -146,6 +150,7 @@ def write_inventory(
                 "fleetdaq_site_src": str(root / "site.yaml"),
                 "fleetdaq_pki_src": str(pki or root / "pki"),
                 "fleetdaq_hub_extras": [],
+                "fleetdaq_status_operator": "fleet-status",
             },
             "children": {
                 "hub": {
@@ -195,6 +200,7 @@ def deploy(tmp_path_factory: pytest.TempPathFactory, wheelhouse: Path) -> Iterat
     for node in ("wec", "shore"):
         fleetdaq("pki", "issue", node, "--dir", str(pki))
     fleetdaq("pki", "issue", "bay2", "--partition", "--hub-name", "10.233.0.11", "--dir", str(pki))
+    fleetdaq("pki", "issue", "fleet-status", "--operator", "--role", "view", "--dir", str(pki))
     lab = Lab(root / "hosts", ["controller", "bay2", "wec", "shore-pi"])
     try:
         # bay2 as a site upgraded from the time every hub had the main hub's pair: the run
@@ -243,6 +249,17 @@ def test_the_first_run_deploys_every_host_from_the_wheelhouse(deploy: Deploy):
             assert stat.S_IMODE((pki / key).stat().st_mode) == 0o600, key
         own = {"controller": "hub", "bay2": "partitions/bay2", "wec": "nodes/wec"}
         assert keys == [own.get(host.name, "nodes/shore") + ".key"], host.name
+        # fleet status's operator pair, for the login user, on the hub hosts only.
+        operator = fs / LOGIN_HOME.lstrip("/") / ".config/fleetdaq"
+        if host.name in ("controller", "bay2"):
+            assert stat.S_IMODE(operator.stat().st_mode) == 0o700
+            assert stat.S_IMODE((operator / "operator.crt").stat().st_mode) == 0o644
+            assert stat.S_IMODE((operator / "operator.key").stat().st_mode) == 0o600
+            assert (operator / "operator.crt").read_bytes() == (
+                deploy.root / "pki/operators/fleet-status.crt"
+            ).read_bytes()
+        else:
+            assert not operator.exists(), host.name
 
     units = deploy.host("controller").fs / "etc/systemd/system"
     hub = (units / "fleetdaq-hub.service").read_text()
@@ -314,15 +331,18 @@ def test_fleet_status_sees_each_deployed_host_as_the_playbook_left_it(deploy: De
         assert 800 < certs["days_left"] <= 825, (name, certs)
     assert hosts["wec"]["node"] == "wec"
     assert hosts["shore-pi"]["node"] == "shore"
-    # What is wrong is only what is not there: ptp4l on the hosts the inventory sets up for PTP
-    # (unless this machine runs its own), and on the hubs an operator pair for the SSH user to
-    # ask the recorder with (the playbook deploys none: each site chooses who may look).
+    # What is wrong is only what does not run here: the hubs (no systemd starts them: their
+    # recorders are asked over TLS with the operator pair the playbook gave the login user, and
+    # nobody answers) and ptp4l on the hosts the inventory sets up for PTP (unless this machine
+    # runs its own).
     for name, h in hosts.items():
         problems = [p for p in h["problems"] if not p.startswith("time: ")]
         if name in ("controller", "bay2"):
+            address = deploy.host(name).address
             (problem,) = problems
-            assert problem.startswith("recorder: not asked: security.tls is on, but "), problem
-            assert "--operator --role view" in problem, problem
+            assert problem.startswith(f"recorder: cannot reach the hub at tls/{address}:7447"), (
+                problem
+            )
         else:
             assert problems == [], (name, problems)
     assert out["problems"] == []  # one site CA across the fleet

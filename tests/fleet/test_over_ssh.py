@@ -563,7 +563,7 @@ def test_each_host_says_when_its_certificates_end_and_which_ca_it_holds(fleet: F
     a, b, hub = hosts["pi-a"]["certificates"], hosts["edge-b"]["certificates"], hosts["hub"]
     assert hub["certificates"] == {
         "tls": False, "first_not_after_ns": 0, "days_left": None, "ca_fingerprint": "",
-        "worst": "ok", "problems": [], "unchecked": [],
+        "worst": "ok", "problems": [], "unchecked": [], "pki_dir": "",
     }  # fmt: skip
     assert hub["healthy"]
     assert a["tls"]
