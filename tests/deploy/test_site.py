@@ -116,6 +116,7 @@ def write_inventory(
     path: Path,
     partition: str = "bay2",
     pki: Path | None = None,
+    status_operator: str = "fleet-status",
     **edge_nodes: str,
 ) -> Path:
     known_hosts = root / "known_hosts"
@@ -150,7 +151,7 @@ def write_inventory(
                 "fleetdaq_site_src": str(root / "site.yaml"),
                 "fleetdaq_pki_src": str(pki or root / "pki"),
                 "fleetdaq_hub_extras": [],
-                "fleetdaq_status_operator": "fleet-status",
+                "fleetdaq_status_operator": status_operator,
             },
             "children": {
                 "hub": {
@@ -423,6 +424,30 @@ def test_an_inventory_that_does_not_fit_the_site_file_stops_before_any_host(
     assert r.returncode != 0
     for line in said:
         assert line in r.stdout, r.stdout[-4000:]
+    assert "PLAY [Hub]" not in r.stdout
+
+
+def test_a_status_operator_the_site_file_does_not_list_stops_before_any_host(
+    deploy: Deploy, tmp_path: Path
+):
+    """Its pair would be copied out and then refused by the hub's access control: fleet status
+    would say the recorder cannot be asked, long after the run said nothing."""
+    fleetdaq("pki", "issue", "nobody", "--operator", "--dir", str(deploy.root / "pki"))
+    bad = write_inventory(
+        deploy.lab,
+        deploy.root,
+        Path(deploy.env["HOME"]),
+        tmp_path / "inventory.yml",
+        status_operator="nobody",
+        **{"shore-pi": "shore"},
+    )
+    r = deploy.playbook(bad)
+    assert r.returncode != 0
+    out = " ".join(r.stdout.split())  # Ansible folds long messages
+    assert "fleetdaq_status_operator 'nobody' needs security.tls and an entry under" in out, (
+        r.stdout[-4000:]
+    )
+    assert "(e.g. nobody: view)" in out
     assert "PLAY [Hub]" not in r.stdout
 
 
