@@ -33,8 +33,9 @@ NO_OPERATOR_PAIR = "security.tls is on, but "
 SET_PAIR = " (set FLEETDAQ_CERT and FLEETDAQ_KEY)"
 OPERATOR_PAIR_NEEDED = (
     "on a TLS site the SSH user asks the hub as an operator: give that user on this host a "
-    "view pair (fleetdaq pki issue NAME --operator --role view, NAME under security.operators; "
-    "copy it to ~/.config/fleetdaq/operator.crt and operator.key there)"
+    "view operator's pair (the inventory's fleetdaq_status_operator and the playbook, or "
+    "fleetdaq pki issue NAME --operator --role view, NAME under security.operators, copied to "
+    "~/.config/fleetdaq/operator.crt and operator.key there)"
 )
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import pwd
 import shutil
 import socket
 import subprocess
@@ -586,3 +587,49 @@ def test_each_host_says_when_its_certificates_end_and_which_ca_it_holds(fleet: F
     assert "no TLS" in table.stdout
     assert "expiring" in table.stdout
     assert "✗ fleet: hosts hold different site CAs" in table.stdout
+
+
+def test_a_tls_hub_is_asked_with_the_ssh_users_operator_pair_or_says_what_is_missing(
+    fleet: Fleet,
+):
+    """On a TLS site `rec status` on the hub host asks as an operator: without a pair for the
+    SSH user the recorder is "not asked", with what to do; with one it is asked (nobody listens
+    on this site's TLS port, so it cannot reach the hub). The pair and the CA are read under
+    the prefix, as the host's services would see them."""
+    from fleetdaq.pki import init, issue_operator
+
+    port = free_port()
+    pki = fleet.hub.fs / "etc/fleetdaq/pki"
+    shutil.rmtree(pki, ignore_errors=True)
+    init(pki, "fleettest", ["127.0.0.1"])
+    tls_site = "/etc/fleetdaq/site-tls-hub.yaml"
+    text = SITE.format(port=port).replace("tcp/", "tls/")
+    text += "security: {tls: true, pki_dir: /etc/fleetdaq/pki, operators: {watch: view}}\n"
+    (fleet.hub.fs / tls_site.lstrip("/")).write_text(text)
+    inv = fleet.inventory(
+        "tls-hub", hub={"hub": fleet.host(fleet.hub, fleetdaq_site_file=tls_site)}
+    )
+
+    r = fleet.status(inv, "--json")
+    assert r.returncode == 1, r.stdout + r.stderr
+    (problem,) = _hosts(r.stdout)["hub"]["problems"]
+    assert problem.startswith("recorder: not asked: security.tls is on, but the operator's "), (
+        problem
+    )
+    assert "fleetdaq_status_operator" in problem
+    assert "--operator --role view" in problem
+
+    home = Path(pwd.getpwnam(USER).pw_dir)  # the SSH session's $HOME
+    config = fleet.hub.fs / home.relative_to("/") / ".config/fleetdaq"
+    config.mkdir(parents=True)
+    try:
+        issue_operator(pki, "watch")
+        for ext in ("crt", "key"):
+            shutil.copy(pki / f"operators/watch.{ext}", config / f"operator.{ext}")
+        (config / "operator.key").chmod(0o600)
+        r = fleet.status(inv, "--json")
+    finally:
+        shutil.rmtree(config)
+    assert r.returncode == 1, r.stdout + r.stderr
+    (problem,) = _hosts(r.stdout)["hub"]["problems"]
+    assert problem.startswith(f"recorder: cannot reach the hub at tls/127.0.0.1:{port}"), problem
