@@ -313,3 +313,16 @@ def operator_name(cert: Path) -> str:
     if not cn.startswith(OPERATOR_CN_PREFIX):
         raise PkiError(f"{cert} is not an operator's certificate (its name is {cn!r})")
     return cn.removeprefix(OPERATOR_CN_PREFIX)
+
+
+def operator_again(cert: Path) -> str:
+    """The command that makes operator `cert`'s pair again: its name and the role it was made
+    with (a template when the file is not an operator's certificate)."""
+    try:
+        c = x509.load_pem_x509_certificate(cert.read_bytes())
+        name = operator_name(cert)
+    except (OSError, ValueError, PkiError):
+        return "fleetdaq pki issue NAME --operator --role ROLE --force"
+    ous = c.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)
+    role = str(ous[0].value).removeprefix("role=") if ous else "view"
+    return f"fleetdaq pki issue {name} --operator --role {role} --force"

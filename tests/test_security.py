@@ -11,9 +11,11 @@ records with no gaps throughout; a private key others may read is refused at sta
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -487,3 +489,32 @@ def test_no_secret_in_the_recording_events_or_logs(tmp_path: Path, monkeypatch: 
         assert hashes[:30] not in body, p
         for k in key_bodies:
             assert k not in body, p
+
+
+def test_an_operator_whose_certificate_ended_is_told_so_and_how_to_renew_it(
+    site: Site, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The hub refuses an ended certificate in the TLS handshake, which says nothing of why:
+    the command looks at the operator's own pair and says it ended, and the command that makes
+    it again."""
+    pki = tmp_path / "pki"
+    shutil.copytree(site.pki, pki)
+    made = dt.datetime.now(dt.UTC) - dt.timedelta(days=10)
+    monkeypatch.setattr("fleetdaq.pki._now", lambda: made)
+    ended = issue_operator(pki, "bob", "view", days=1, force=True)  # ended 9 days ago
+    env = {**os.environ, "FLEETDAQ_CERT": str(ended.cert), "FLEETDAQ_KEY": str(ended.key)}
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "rec", "status", "--config", str(site.cfg)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 2
+    assert f"(your certificate {ended.cert}: expired on " in r.stderr, r.stderr
+    assert "make it again: fleetdaq pki issue bob --operator --role view --force)" in r.stderr, (
+        r.stderr
+    )
+    assert "Traceback" not in r.stderr

@@ -18,6 +18,7 @@ import click
 
 if TYPE_CHECKING:
     from edge.config.site import SiteConfig
+    from edge.security import TlsFiles
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -178,11 +179,32 @@ def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: 
     try:
         return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms, tls=tls))
     except zenoh.ZError as err:
-        hint = " (is your certificate from this site's CA?)" if tls is not None else ""
+        hint = _why_tls_failed(tls) if tls is not None else ""
         why = str(err).split(" at /", 1)[0]  # not the Rust source file it was raised in
         raise NoAnswer(
             f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}{also}"
         ) from None
+
+
+def _why_tls_failed(tls: TlsFiles) -> str:
+    """What the operator's own files say when the hub could not be reached over TLS: a refused
+    handshake tells the client nothing, but a certificate that has ended (or not started by this
+    clock, or is not from the CA beside it) is what a person can fix."""
+    import time
+
+    from fleetdaq.certificate_check import GOOD, judge
+    from fleetdaq.pki import operator_again
+
+    now_ns = time.time_ns()
+    renew = f"make it again: {operator_again(tls.cert)}"
+    for which, path, ca, fix in (
+        ("your certificate", tls.cert, tls.ca, renew),
+        ("the site CA", tls.ca, None, "copy the site's ca.crt here"),
+    ):
+        judged = judge(which, path, fix, ca, now_ns, 0.0)
+        if judged.state not in GOOD:
+            return f" ({which} {path}: {judged.message})"
+    return " (is your certificate from this site's CA?)"
 
 
 def operator_key(site: SiteConfig, what: str) -> str:
