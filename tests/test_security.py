@@ -420,6 +420,62 @@ def test_the_hubs_pair_issued_again_with_the_same_ca_lets_every_node_back_in(tmp
                 p.kill()
 
 
+def test_an_operator_whose_certificate_ended_is_told_so_and_how_to_renew_it(
+    site: Site, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The hub refuses an ended certificate in the TLS handshake, which says nothing of why:
+    the command looks at the operator's own pair and says it ended, and the command that makes
+    it again."""
+    pki = tmp_path / "pki"
+    shutil.copytree(site.pki, pki)
+    made = dt.datetime.now(dt.UTC) - dt.timedelta(days=10)
+    monkeypatch.setattr("fleetdaq.pki._now", lambda: made)
+    ended = issue_operator(pki, "bob", "view", days=1, force=True)  # ended 9 days ago
+    env = {**os.environ, "FLEETDAQ_CERT": str(ended.cert), "FLEETDAQ_KEY": str(ended.key)}
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "rec", "status", "--config", str(site.cfg)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 2
+    assert f"(your certificate {ended.cert}: expired on " in r.stderr, r.stderr
+    assert "make it again: fleetdaq pki issue bob --operator --role view --force)" in r.stderr, (
+        r.stderr
+    )
+    assert "Traceback" not in r.stderr
+
+
+def test_an_operator_whose_certificate_ends_soon_is_told_and_the_command_runs(
+    site: Site, tmp_path: Path
+):
+    pki = tmp_path / "pki"
+    shutil.copytree(site.pki, pki)
+    soon = issue_operator(pki, "bob", "view", days=10, force=True)
+    env = {**os.environ, "FLEETDAQ_CERT": str(soon.cert), "FLEETDAQ_KEY": str(soon.key)}
+    r = subprocess.run(
+        [sys.executable, "-m", "fleetdaq", "rec", "status", "--json", "--config", str(site.cfg)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["recorder"]["state"] == "recording"
+    (note,) = r.stderr.splitlines()
+    assert note.startswith(f"note: your certificate {soon.cert} expires on "), note
+    assert note.endswith("(make it again: fleetdaq pki issue bob --operator --role view --force)")
+    # Far from its end: nothing is said.
+    r = site.fleetdaq("bob", "rec", "status", "--json")
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == ""
+
+
 def test_zz_the_fleet_recorded_without_gaps_and_nothing_forged(site: Site):
     view = site.hub_view()
     for node, stream in (("wec", "t8"), ("shore", "env")):
@@ -489,32 +545,3 @@ def test_no_secret_in_the_recording_events_or_logs(tmp_path: Path, monkeypatch: 
         assert hashes[:30] not in body, p
         for k in key_bodies:
             assert k not in body, p
-
-
-def test_an_operator_whose_certificate_ended_is_told_so_and_how_to_renew_it(
-    site: Site, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-):
-    """The hub refuses an ended certificate in the TLS handshake, which says nothing of why:
-    the command looks at the operator's own pair and says it ended, and the command that makes
-    it again."""
-    pki = tmp_path / "pki"
-    shutil.copytree(site.pki, pki)
-    made = dt.datetime.now(dt.UTC) - dt.timedelta(days=10)
-    monkeypatch.setattr("fleetdaq.pki._now", lambda: made)
-    ended = issue_operator(pki, "bob", "view", days=1, force=True)  # ended 9 days ago
-    env = {**os.environ, "FLEETDAQ_CERT": str(ended.cert), "FLEETDAQ_KEY": str(ended.key)}
-    r = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "rec", "status", "--config", str(site.cfg)],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert r.returncode == 2
-    assert f"(your certificate {ended.cert}: expired on " in r.stderr, r.stderr
-    assert "make it again: fleetdaq pki issue bob --operator --role view --force)" in r.stderr, (
-        r.stderr
-    )
-    assert "Traceback" not in r.stderr

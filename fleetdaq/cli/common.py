@@ -176,6 +176,7 @@ def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: 
             raise NoAnswer(
                 f"security.tls is on, but {err} (set FLEETDAQ_CERT and FLEETDAQ_KEY)"
             ) from None
+        _warn_if_ending(tls, site)
     try:
         return zenoh.open(client_config(endpoints, timeout_ms=timeout_ms, tls=tls))
     except zenoh.ZError as err:
@@ -184,6 +185,24 @@ def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: 
         raise NoAnswer(
             f"cannot reach the hub at {', '.join(endpoints)}: {why}{hint}{also}"
         ) from None
+
+
+def _warn_if_ending(tls: TlsFiles, site: SiteConfig) -> None:
+    """One line on stderr when the operator's certificate ends within the days the hub warns
+    of its own (certificate_expiring): the command still runs, and nobody is locked out at
+    3 a.m. by a date they were never told of."""
+    import time
+
+    from edge.certificate_dates import warn_days
+    from fleetdaq.certificate_check import judge
+    from fleetdaq.pki import operator_again
+
+    judged = judge(
+        "your certificate", tls.cert, f"make it again: {operator_again(tls.cert)}", tls.ca,
+        time.time_ns(), warn_days(site),
+    )  # fmt: skip
+    if judged.state == "expiring":
+        click.echo(f"note: your certificate {tls.cert} {judged.message}", err=True)
 
 
 def _why_tls_failed(tls: TlsFiles) -> str:
