@@ -221,6 +221,12 @@ class _Probe:
         if self.host.partition is not None:  # a partition hub's own recorder
             args += ["--partition", self.host.partition]
         status, out, err = self.run(*args, env=self._operator_under_prefix())
+        # e.g. the SSH user's operator pair ends soon (the command still ran)
+        self.notes.extend(
+            f"rec status: {line.removeprefix('note: ')}"
+            for line in err.splitlines()
+            if line.startswith("note: ")
+        )
         try:
             view = parse_recorder(out)
         except ValueError:

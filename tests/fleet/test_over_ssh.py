@@ -623,7 +623,7 @@ def test_a_tls_hub_is_asked_with_the_ssh_users_operator_pair_or_says_what_is_mis
     config = fleet.hub.fs / home.relative_to("/") / ".config/fleetdaq"
     config.mkdir(parents=True)
     try:
-        issue_operator(pki, "watch")
+        issue_operator(pki, "watch", days=10)
         for ext in ("crt", "key"):
             shutil.copy(pki / f"operators/watch.{ext}", config / f"operator.{ext}")
         (config / "operator.key").chmod(0o600)
@@ -631,5 +631,11 @@ def test_a_tls_hub_is_asked_with_the_ssh_users_operator_pair_or_says_what_is_mis
     finally:
         shutil.rmtree(config)
     assert r.returncode == 1, r.stdout + r.stderr
-    (problem,) = _hosts(r.stdout)["hub"]["problems"]
+    hub = _hosts(r.stdout)["hub"]
+    (problem,) = hub["problems"]
     assert problem.startswith(f"recorder: cannot reach the hub at tls/127.0.0.1:{port}"), problem
+    # The pair ends within 30 days: said as the host's note, with the command that renews it.
+    (ending,) = [n for n in hub["notes"] if n.startswith("rec status: ")]
+    assert ending.startswith("rec status: your certificate "), ending
+    assert "in 10.0 days" in ending or "in 9.9 days" in ending, ending
+    assert ending.endswith("fleetdaq pki issue watch --operator --role view --force)"), ending
