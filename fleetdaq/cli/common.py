@@ -19,6 +19,7 @@ import click
 if TYPE_CHECKING:
     from edge.config.site import SiteConfig
     from edge.security import TlsFiles
+    from fleetdaq.certificate_check import Checked
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -187,42 +188,41 @@ def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: 
         ) from None
 
 
+def _judge_pair(tls: TlsFiles, days_before: float) -> list[Checked]:
+    """The operator's certificate and the CA beside it, as `fleetdaq pki check` judges them."""
+    import time
+
+    from fleetdaq.certificate_check import judge
+    from fleetdaq.pki import operator_again
+
+    now_ns = time.time_ns()
+    renew = f"make it again: {operator_again(tls.cert)}"
+    return [
+        judge("your certificate", tls.cert, renew, tls.ca, now_ns, days_before),
+        judge("the site CA", tls.ca, "copy the site's ca.crt here", None, now_ns, days_before),
+    ]
+
+
 def _warn_if_ending(tls: TlsFiles, site: SiteConfig) -> None:
     """One line on stderr when the operator's certificate ends within the days the hub warns
     of its own (certificate_expiring): the command still runs, and nobody is locked out at
     3 a.m. by a date they were never told of."""
-    import time
-
     from edge.certificate_dates import warn_days
-    from fleetdaq.certificate_check import judge
-    from fleetdaq.pki import operator_again
 
-    judged = judge(
-        "your certificate", tls.cert, f"make it again: {operator_again(tls.cert)}", tls.ca,
-        time.time_ns(), warn_days(site),
-    )  # fmt: skip
-    if judged.state == "expiring":
-        click.echo(f"note: your certificate {tls.cert} {judged.message}", err=True)
+    mine = _judge_pair(tls, warn_days(site))[0]
+    if mine.state == "expiring":
+        click.echo(f"note: your certificate {tls.cert} {mine.message}", err=True)
 
 
 def _why_tls_failed(tls: TlsFiles) -> str:
     """What the operator's own files say when the hub could not be reached over TLS: a refused
     handshake tells the client nothing, but a certificate that has ended (or not started by this
     clock, or is not from the CA beside it) is what a person can fix."""
-    import time
+    from fleetdaq.certificate_check import GOOD
 
-    from fleetdaq.certificate_check import GOOD, judge
-    from fleetdaq.pki import operator_again
-
-    now_ns = time.time_ns()
-    renew = f"make it again: {operator_again(tls.cert)}"
-    for which, path, ca, fix in (
-        ("your certificate", tls.cert, tls.ca, renew),
-        ("the site CA", tls.ca, None, "copy the site's ca.crt here"),
-    ):
-        judged = judge(which, path, fix, ca, now_ns, 0.0)
+    for judged in _judge_pair(tls, 0.0):
         if judged.state not in GOOD:
-            return f" ({which} {path}: {judged.message})"
+            return f" ({judged.which} {judged.path}: {judged.message})"
     return " (is your certificate from this site's CA?)"
 
 
