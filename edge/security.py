@@ -60,13 +60,15 @@ class TlsFiles:
     cert: Path
     key: Path
 
-    def check(self, who: str) -> TlsFiles:
-        """Refuse (SecretFileError, one line) a missing file or a key others may read."""
-        for what, path in (("the site CA", self.ca), (f"{who}'s certificate", self.cert)):
+    def check(self, who: str, mine: str = "security.pki_dir; `fleetdaq pki` makes it") -> TlsFiles:
+        """Refuse (SecretFileError, one line) a missing file or a key others may read. `mine`:
+        where the certificate is looked for and what makes it."""
+        for what, path, where in (
+            ("the site CA", self.ca, "security.pki_dir; `fleetdaq pki` makes it"),
+            (f"{who}'s certificate", self.cert, mine),
+        ):
             if not path.is_file():
-                raise SecretFileError(
-                    f"{what} {path}: no such file (security.pki_dir; `fleetdaq pki` makes it)"
-                )
+                raise SecretFileError(f"{what} {path}: no such file ({where})")
         check_private_file(self.key, f"{who}'s private key")
         return self
 
@@ -101,7 +103,11 @@ def operator_tls(pki_dir: Path) -> TlsFiles:
     cert = Path(os.environ.get("FLEETDAQ_CERT") or home / "operator.crt")
     key = Path(os.environ.get("FLEETDAQ_KEY") or cert.with_suffix(".key"))
     ca = Path(os.environ.get("FLEETDAQ_CA") or pki_dir / "ca.crt")
-    return TlsFiles(ca, cert, key).check("the operator")
+    return TlsFiles(ca, cert, key).check(
+        "the operator",
+        "$FLEETDAQ_CERT, else ~/.config/fleetdaq/operator.crt; "
+        "`fleetdaq pki issue NAME --operator` makes it",
+    )
 
 
 def read_certificate(path: Path) -> dict[str, Any]:

@@ -616,6 +616,9 @@ def test_a_tls_hub_is_asked_with_the_ssh_users_operator_pair_or_says_what_is_mis
     assert problem.startswith("recorder: not asked: security.tls is on, but the operator's "), (
         problem
     )
+    assert "operator.crt: no such file ($FLEETDAQ_CERT, else ~/.config/fleetdaq/operator.crt;" in (
+        problem
+    )
     assert "fleetdaq_status_operator" in problem
     assert "--operator --role view" in problem
 
