@@ -84,8 +84,11 @@ class Site:
     def session(self, tls: TlsFiles | None, timeout_ms: int = 5000) -> Any:
         return zenoh.open(client_config([self.endpoint], timeout_ms=timeout_ms, tls=tls))
 
-    def fleetdaq(self, operator: str, *args: str) -> subprocess.CompletedProcess[str]:
-        stem = self.pki / "operators" / operator
+    def fleetdaq(
+        self, operator: str, *args: str, pki: Path | None = None
+    ) -> subprocess.CompletedProcess[str]:
+        """A fleetdaq command as `operator`, with its pair from `pki` (default the site's)."""
+        stem = (pki or self.pki) / "operators" / operator
         env = {
             **os.environ,
             "FLEETDAQ_CERT": str(stem.with_suffix(".crt")),
@@ -431,16 +434,7 @@ def test_an_operator_whose_certificate_ended_is_told_so_and_how_to_renew_it(
     made = dt.datetime.now(dt.UTC) - dt.timedelta(days=10)
     monkeypatch.setattr("fleetdaq.pki._now", lambda: made)
     ended = issue_operator(pki, "bob", "view", days=1, force=True)  # ended 9 days ago
-    env = {**os.environ, "FLEETDAQ_CERT": str(ended.cert), "FLEETDAQ_KEY": str(ended.key)}
-    r = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "rec", "status", "--config", str(site.cfg)],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    r = site.fleetdaq("bob", "rec", "status", pki=pki)
     assert r.returncode == 2
     assert f"(your certificate {ended.cert}: expired on " in r.stderr, r.stderr
     assert "make it again: fleetdaq pki issue bob --operator --role view --force)" in r.stderr, (
@@ -455,16 +449,7 @@ def test_an_operator_whose_certificate_ends_soon_is_told_and_the_command_runs(
     pki = tmp_path / "pki"
     shutil.copytree(site.pki, pki)
     soon = issue_operator(pki, "bob", "view", days=10, force=True)
-    env = {**os.environ, "FLEETDAQ_CERT": str(soon.cert), "FLEETDAQ_KEY": str(soon.key)}
-    r = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "rec", "status", "--json", "--config", str(site.cfg)],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    r = site.fleetdaq("bob", "rec", "status", "--json", pki=pki)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["recorder"]["state"] == "recording"
     (note,) = r.stderr.splitlines()
