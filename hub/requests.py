@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.config.security import SecurityConfig
+from edge.requester_text import TextRefused, checked_text
 from edge.threads import name_os_thread
 from hub.read_model import to_jsonable
 from hub.router import Router
@@ -58,9 +59,12 @@ def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
 
 
 def text(req: dict[str, Any], key: str, limit: int = 500, default: str = "") -> str:
-    value = req.get(key, "")
-    if not isinstance(value, str) or len(value) > limit:
-        raise BadRequest(f"{key} must be text of at most {limit} characters")
+    """The request's `key` as requester text (`edge.requester_text`: one line, no lone
+    surrogate or control character, at most `limit` characters), `default` when empty."""
+    try:
+        value = checked_text(req.get(key, ""), key, limit)
+    except TextRefused as err:
+        raise BadRequest(str(err)) from None
     return value or default
 
 
