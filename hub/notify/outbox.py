@@ -146,6 +146,7 @@ class Outbox:
             seq = self._seq
         name = f"{round(envelope.created * 1e9):020d}-{seq:06d}-{uuid.uuid4().hex[:8]}{SUFFIX}"
         write_atomically(self.dir / name, envelope.to_json() + b"\n" + message)
+        # indexed (so counted as queued) only now that the file and its name are synced
         entry = Entry(name, envelope)
         with self._lock:
             self._entries[name] = entry
@@ -171,11 +172,12 @@ class Outbox:
             return min((e.next_try for e in self._entries.values()), default=None)
 
     def delivered(self, entry: Entry) -> None:
-        """The server accepted it: gone from disk, then from the index."""
-        (self.dir / entry.name).unlink(missing_ok=True)
-        fsync_dir(self.dir)
+        """The server accepted it: its file and its index entry go together (`len` never
+        counts a file that is gone), then the directory is synced."""
         with self._lock:
+            (self.dir / entry.name).unlink(missing_ok=True)
             self._entries.pop(entry.name, None)
+        fsync_dir(self.dir)
 
     def narrow(self, entry: Entry, to: tuple[str, ...]) -> None:
         """Some recipients got it: keep the mail for the others only."""
@@ -188,8 +190,6 @@ class Outbox:
     def reject(self, entry: Entry, reason: str) -> None:
         """Refused for good: moved to ``failed/`` with the reason beside it."""
         self._move_to_failed(entry.name, reason)
-        with self._lock:
-            self._entries.pop(entry.name, None)
 
     def oldest_created(self) -> float | None:
         with self._lock:
@@ -201,6 +201,8 @@ class Outbox:
         return sum(1 for p in self.failed_dir.iterdir() if p.name.endswith(SUFFIX))
 
     def __len__(self) -> int:
+        """Mails whose file is complete and synced on disk: each one survives a kill -9. This
+        is what the notifier reports as ``queued``."""
         with self._lock:
             return len(self._entries)
 
@@ -213,11 +215,14 @@ class Outbox:
 
     def _move_to_failed(self, name: str, reason: str) -> None:
         self.failed_dir.mkdir(exist_ok=True, mode=0o700)
-        try:
-            os.replace(self.dir / name, self.failed_dir / name)
-        except FileNotFoundError:
-            log.error("mail %s vanished from %s: %s", name, self.dir, reason)
-            return
+        with self._lock:
+            try:
+                os.replace(self.dir / name, self.failed_dir / name)
+            except FileNotFoundError:
+                self._entries.pop(name, None)
+                log.error("mail %s vanished from %s: %s", name, self.dir, reason)
+                return
+            self._entries.pop(name, None)
         (self.failed_dir / f"{name}.reason").write_text(reason + "\n", encoding="utf-8")
         fsync_dir(self.failed_dir)
         fsync_dir(self.dir)

@@ -15,7 +15,9 @@ have been mailed) but sends nothing and writes nothing; it says so once, as an I
 at start.
 
 The read model's ``notifier`` part (see `counters`) is what the dashboard shows and what the
-supervisor's universal alarm ``notifications_failing`` watches (``oldest_queued_age_s``).
+supervisor's universal alarm ``notifications_failing`` watches (``oldest_queued_age_s``). Its
+``queued`` is the outbox's own count of mails complete on disk, never a tally kept beside it:
+a mail composed but not yet written (or that the outbox cannot take) is ``unwritten``.
 """
 
 from __future__ import annotations
@@ -88,7 +90,11 @@ class EmailNotifier:
         self._queue: queue.Queue[Notification] = queue.Queue(queue_limit)
         self._secrets: list[Secret] = []
         self._unwritten: list[tuple[Envelope, bytes]] = []
-        """Composed mails the outbox could not take (disk full): retried every pass."""
+        """Composed mails not in the outbox yet (in memory: a kill -9 loses them). Normally
+        only while a pass writes them; when the outbox cannot take them (disk full,
+        read-only), until it can: retried every pass."""
+        self._outbox_failing = False
+        """The last write to the outbox failed."""
         self._held_dirty = False
         self._held_now = 0
         """Transitions held for digests, as last synced to disk (what `held` publishes)."""
@@ -319,6 +325,7 @@ class EmailNotifier:
             try:
                 self.outbox.put(envelope, data)
             except OSError as err:
+                self._outbox_failing = True
                 self._trouble(
                     "outbox_error",
                     f"e-mail: cannot write to the outbox "
@@ -327,6 +334,7 @@ class EmailNotifier:
                 )
                 return
             self._unwritten.pop(0)
+        self._outbox_failing = False
         if self.delivery is not None:
             self.delivery.kick()
 
@@ -355,19 +363,23 @@ class EmailNotifier:
         """The read model's ``notifier`` part."""
         smtp, d = self.cfg.smtp, self.delivery
         now = self.clock.time()
-        created = [e.created for e, _ in self._unwritten]
+        unwritten = list(self._unwritten)  # one look: the policy thread changes it meanwhile
+        created = [e.created for e, _ in unwritten]
         if self.outbox is not None and (oldest := self.outbox.oldest_created()) is not None:
             created.append(oldest)
         # Mails a previous run left count from this start: the alarm on this age says that
         # delivery is failing now, not that the hub was off (they usually go in a moment).
         age = max(0.0, now - max(min(created), self._started_wall)) if created else 0.0
-        queued = (len(self.outbox) if self.outbox is not None else 0) + len(self._unwritten)
+        # Only what the outbox holds on disk: an operator reading `queued` may count on each
+        # of those mails surviving a kill -9. Adding the mails still in memory made it run
+        # ahead of the disk while a pass was writing them.
+        queued = len(self.outbox) if self.outbox is not None else 0
         if smtp is None:
             state = "off"
-        elif d is not None and d.failing:
+        elif (d is not None and d.failing) or self._outbox_failing:
             state = "failing"
         else:
-            state = "sending" if queued else "idle"
+            state = "sending" if queued or unwritten else "idle"
         next_in = 0.0
         if d is not None and d.failing:
             next_in = max(0.0, d.next_attempt - self.clock.monotonic())
@@ -388,6 +400,7 @@ class EmailNotifier:
             "deferred": self.policy.deferred,
             "held": self._held_now,
             "queued": queued,
+            "unwritten": len(unwritten),
             "sent": d.sent if d is not None else 0,
             "failed_attempts": d.failed_attempts if d is not None else 0,
             "rejected": d.rejected if d is not None else 0,

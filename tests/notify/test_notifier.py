@@ -257,6 +257,114 @@ def test_a_notifier_killed_with_sigkill_loses_neither_queued_mails_nor_held_tran
     assert not (outbox / "held.jsonl").exists()
 
 
+def block(outbox: Path) -> Path:
+    """Make `outbox` unusable as a directory (a file in its place, what it held set aside);
+    returns where it went. No user, not even root, can then create a mail file there."""
+    aside = outbox.with_name(outbox.name + ".aside")
+    outbox.rename(aside)
+    outbox.write_bytes(b"")
+    return aside
+
+
+def unblock(outbox: Path, aside: Path) -> None:
+    outbox.unlink()
+    aside.rename(outbox)
+
+
+def test_queued_counts_only_mails_on_disk_and_a_kill_9_right_after_loses_none_of_them(
+    tmp_path: Path,
+) -> None:
+    from tests.notify.queued_victim import queued_victim_config
+
+    port, outbox = free_port(), tmp_path / "outbox"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.notify.queued_victim", str(outbox), str(port)],
+        cwd=REPO,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    stdin, stdout = proc.stdin, proc.stdout
+    assert stdin is not None
+    assert stdout is not None
+
+    def submit(n: int) -> dict[str, Any]:
+        stdin.write(f"submit {n}\n")
+        stdin.flush()
+        line = stdout.readline()
+        assert line.startswith("COUNTERS "), line
+        counters: dict[str, Any] = json.loads(line[9:])
+        return counters
+
+    aside: Path | None = None
+    try:
+        assert stdout.readline() == "READY\n"
+        first = submit(3)
+        aside = block(outbox)  # the disk is full, read-only, or the folder was removed
+        blocked = submit(2)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+        stdin.close()
+        stdout.close()
+        if aside is not None:
+            unblock(outbox, aside)
+    assert proc.returncode == -signal.SIGKILL
+    assert first["queued"] == 3
+    assert blocked["queued"] == 3  # the two composed since are in memory only, and say so
+    assert blocked["unwritten"] == 2
+    assert blocked["state"] == "failing"
+    assert len(mail_files(outbox)) == blocked["queued"]
+
+    with (
+        SmtpServer("plain", port=port) as server,
+        running(queued_victim_config(port), outbox) as (_, model, events),
+    ):
+        got = server.handler.wait_for(3)
+        model.wait_notifier(lambda c: c["sent"] == 3 and c["queued"] == 0)
+    assert sorted(m.subject for m in got) == [
+        f"[fleetdaq buoy-1] CRITICAL alarm_{i} raised" for i in range(3)
+    ]
+    assert "holds 3 mail(s)" in events.tagged("notify_started")[0].message
+
+
+def test_a_mail_the_outbox_cannot_take_is_unwritten_not_queued_and_goes_once_it_can(
+    tmp_path: Path,
+) -> None:
+    outbox = tmp_path / "outbox"
+    with SmtpServer("plain") as server:
+        cfg = config(
+            {"ops": {"to": ["ops@x.example"]}},
+            {"host": "127.0.0.1", "port": server.port, "security": "plain"},
+        )
+        with running(cfg, outbox) as (notifier, model, events):
+            notifier.submit(alarm("first", severity="critical"))
+            model.wait_notifier(lambda c: c["sent"] == 1 and c["queued"] == 0)
+            aside = block(outbox)
+            try:
+                for i in range(3):
+                    notifier.submit(alarm(f"later_{i}", severity="critical"))
+                blocked = model.wait_notifier(lambda c: c["composed"] == 4 and c["errors"] >= 1)
+                assert blocked["queued"] == 0
+                assert mail_files(aside) == []
+                assert blocked["unwritten"] == 3
+                assert blocked["state"] == "failing"
+            finally:
+                unblock(outbox, aside)
+            back = model.wait_notifier(
+                lambda c: c["sent"] == 4 and c["unwritten"] == 0 and c["state"] == "idle"
+            )
+            got = server.handler.wait_for(4)
+            error = events.wait_tag("outbox_error")
+    assert "cannot write to the outbox" in error.message
+    assert back["queued"] == 0
+    assert sorted(m.subject for m in got)[1:] == [
+        f"[fleetdaq buoy-1] CRITICAL later_{i} raised" for i in range(3)
+    ]
+    assert mail_files(outbox) == []
+
+
 # --- flood control -----------------------------------------------------------------------------
 
 
