@@ -61,13 +61,24 @@ class ManualClock:
 
 class WatchedModel(ReadModel):
     """A read model a test can wait on: `wait_notifier(pred)` returns once a published
-    `notifier` part satisfies `pred`."""
+    `notifier` part satisfies `pred`.
 
-    def __init__(self, site: str) -> None:
+    Given the `outbox` directory, it also looks at the disk as each `notifier` part arrives
+    and keeps every one whose ``queued`` was more than the mail files there (`ahead_of_disk`,
+    as (queued, files)). Only meaningful while no mail is delivered: one deleted between the
+    counting and the look would show up here."""
+
+    def __init__(self, site: str, outbox: Path | None = None) -> None:
         super().__init__(site)
         self._cond = threading.Condition()
+        self._outbox = outbox
+        self.ahead_of_disk: list[tuple[int, int]] = []
 
     def put(self, part: str, value: Any) -> None:
+        if part == "notifier" and self._outbox is not None:
+            files = len(list(self._outbox.glob("*.mail"))) if self._outbox.is_dir() else 0
+            if value["queued"] > files:
+                self.ahead_of_disk.append((value["queued"], files))
         super().put(part, value)
         with self._cond:
             self._cond.notify_all()
@@ -158,11 +169,14 @@ def running(
     outbox: Path,
     clock: ManualClock | None = None,
     site: str = "buoy-1",
+    *,
+    watch_disk: bool = False,
 ) -> Iterator[tuple[EmailNotifier, WatchedModel, Events]]:
-    """A started notifier with its bus and model; stopped (and the bus too) at the end."""
+    """A started notifier with its bus and model; stopped (and the bus too) at the end.
+    `watch_disk`: the model compares each ``queued`` with the outbox (see `WatchedModel`)."""
     bus = EventBus()
     events = Events(bus)
-    model = WatchedModel(site)
+    model = WatchedModel(site, outbox if watch_disk else None)
     bus.start()
     kwargs: dict[str, Any] = {} if clock is None else {"clock": clock}
     notifier = EmailNotifier(cfg, site, outbox, bus, model, **kwargs)

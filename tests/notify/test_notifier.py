@@ -130,7 +130,7 @@ def test_a_dead_server_queues_mails_on_disk_and_every_one_arrives_once_it_is_bac
     cfg = config({"ops": {"to": ["ops@x.example"]}}, smtp(server, ca), retry_max_s=600)
     clock = ManualClock()
     outbox = tmp_path / "outbox"
-    with running(cfg, outbox, clock) as (notifier, model, events):
+    with running(cfg, outbox, clock, watch_disk=True) as (notifier, model, events):
         for i in range(5):
             notifier.submit(alarm(f"alarm_{i}", severity="critical"))
         down = model.wait_notifier(lambda c: c["queued"] == 5 and c["state"] == "failing")
@@ -150,6 +150,7 @@ def test_a_dead_server_queues_mails_on_disk_and_every_one_arrives_once_it_is_bac
         assert later["queued"] == 5
         assert later["next_attempt_in_s"] == 120
         assert server.handler.received == []
+        assert model.ahead_of_disk == []  # never a mail counted before its file was on disk
 
         server.start()
         try:
