@@ -363,7 +363,14 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
     n = view.notifier
     if n:
         yield GaugeMetricFamily(
-            "fleetdaq_notifications_queued", "Mails waiting to be sent.", n.get("queued", 0)
+            "fleetdaq_notifications_queued",
+            "Mails waiting to be sent, each complete in the outbox on disk.",
+            n.get("queued", 0),
+        )
+        yield GaugeMetricFamily(
+            "fleetdaq_notifications_unwritten",
+            "Mails composed but not in the outbox yet (the outbox cannot take them).",
+            n.get("unwritten", 0),
         )
         yield GaugeMetricFamily(
             "fleetdaq_notifications_oldest_queued_seconds",

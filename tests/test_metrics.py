@@ -112,6 +112,7 @@ def test_metrics_say_what_the_view_says(hub: tuple[HubRuntime, int]):
     assert m[("fleetdaq_recorder_written_bytes_total", ())] == view.recorder.bytes_written
     assert m[("fleetdaq_recorder_write_errors_total", ())] == 0
     assert ("fleetdaq_notifications_queued", ()) in m
+    assert ("fleetdaq_notifications_unwritten", ()) in m
     assert m[("fleetdaq_snapshot_buffer_bytes", ())] > 0
     names = {name for name, _ in m}
     assert all(n.startswith("fleetdaq_") for n in names)
