@@ -71,7 +71,10 @@ class CommandDesk:
         clock: TimeSource,
         state: SafeState,
         max_command_age_s: float,
+        memory: int = REPLY_MEMORY,
     ) -> None:
+        """`max_command_age_s`: the node's limit under the site's ceiling; `memory`: the most
+        command ids remembered for replays."""
         self.node = node
         self.channels = channels
         self.interlocks = interlocks
@@ -81,6 +84,7 @@ class CommandDesk:
         self.max_command_age_s = max_command_age_s
         self.malformed = 0
         self._malformed_reported = 0
+        self.memory = memory
         self._replies: OrderedDict[str, _Answered] = OrderedDict()
 
     def decide(self, output: str, data: bytes) -> bytes:
@@ -104,7 +108,8 @@ class CommandDesk:
                 self.malformed += 1
                 self._report_malformed(output, f"{field} {why}")
                 bad = Refusal("not_allowed", f"{field} {why}")
-                return encode(self.reply(None, output, bad))
+                answered = cmd if field != "command_id" else None
+                return encode(self.reply(answered, output, bad))
         now_ns = self.clock.time_ns()
         self._forget(now_ns)
         seen = self._replies.get(cmd.command_id)
@@ -115,13 +120,13 @@ class CommandDesk:
                 "not_allowed", f"command id {cmd.command_id!r} was used for another command"
             )
             return self._finish(cmd, output, reused, remember=False)
-        if len(self._replies) >= REPLY_MEMORY and cmd.action != "read":
-            oldest = next(iter(self._replies.values()))
+        if len(self._replies) >= self.memory and cmd.action != "read":
+            soonest = min(seen.until_ns for seen in self._replies.values())
             busy = Refusal(
                 "not_allowed",
                 f"busy: {len(self._replies)} commands young enough to be replayed are "
                 "remembered, the most this edge keeps (a replay could not be told from a new "
-                f"command); try again in {max(0.0, (oldest.until_ns - now_ns) / 1e9):.1f} s",
+                f"command); try again in {max(0.0, (soonest - now_ns) / 1e9):.1f} s",
             )
             return self._finish(cmd, output, busy, remember=False)
         ch = self.channels.get(cmd.output)
@@ -169,13 +174,17 @@ class CommandDesk:
         return encode(dataclasses.replace(first, replay=True))
 
     def _forget(self, now_ns: int) -> None:
-        """Forget the ids whose commands are too old to be applied now, oldest first."""
+        """Forget the ids whose commands are too old to be applied now: from the front (the
+        order ids were last seen in), and all through once the memory is full."""
         replies = self._replies
         while replies:
             oldest = next(iter(replies.values()))
             if oldest.until_ns >= now_ns:
-                return
+                break
             replies.popitem(last=False)
+        if len(replies) >= self.memory:
+            for key in [k for k, seen in replies.items() if seen.until_ns < now_ns]:
+                del replies[key]
 
     def _apply(self, cmd: OutputCommand, ch: OutputChannel) -> Refusal | None:
         """Do what an allowed command says; a device's refusal is the reply."""
