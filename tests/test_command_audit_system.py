@@ -233,7 +233,7 @@ def test_a_command_issued_in_1970_that_allows_itself_1e300_s_is_refused_too_old(
 
 
 def _readback(line: str) -> float:
-    return float(line.split("readback ", 1)[1].split()[0].rstrip(";"))
+    return float(line.split("readback ", 1)[1].split(maxsplit=1)[0].rstrip(";"))
 
 
 def test_a_replayed_command_id_gets_its_original_outcome_and_is_not_applied_again(
