@@ -142,7 +142,10 @@ class EdgeAgent:
             loop = StreamLoop(sid, node, name, cfg, None, events, spool, node_cfg.spool, driver)
             loop.time_sync = self.time_sync
             self.loops.append(loop)
-        outputs = self.outputs = OutputService(sid, node, node_cfg, events, self.shared)
+        outputs = self.outputs = OutputService(
+            sid, node, node_cfg, events, self.shared,
+            command_age_limit_s=self.site.command_age_limit_s(node),
+        )  # fmt: skip
         for loop in self.loops:
             hook = outputs.interlocks.hook(loop.name, loop.channel_index)
             if hook is not None:

@@ -5,10 +5,12 @@ In order (the first that applies is the reply):
 
 1. not_allowed: a max_age_s that is not a finite number >= 0; for set and pulse a value that
    is not finite, a digital value other than 0 or 1, a pulse_s not in (0, 3600] s.
-2. too_old: |edge CLOCK_REALTIME - issued_ns| > max_age_s (the command's own, or the node's
-   `max_command_age_s` when it says 0). Both clocks are PTP-disciplined; their offset adds
-   to the age in one direction, so a command "from the future" by more than the limit is
-   refused too (a hub or edge clock that is wrong).
+2. too_old: |edge CLOCK_REALTIME - issued_ns| > the effective limit: the node's
+   `max_command_age_s` (never above the site's ceiling `commands.max_age_s`), or the
+   command's own `max_age_s` when that is lower (0: none). A sender can only lower the
+   limit: a command from 1970 that says ``max_age_s: 1e300`` is too old. Both clocks are
+   PTP-disciplined; their offset adds to the age in one direction, so a command "from the
+   future" by more than the limit is refused too (a hub or edge clock that is wrong).
 3. read and disarm are always allowed (they move nothing).
 4. safe_state: set, pulse and arm while the edge is in its safe state (no hub heartbeat).
 5. interlock: set and pulse while an interlock guarding the output is tripped.
@@ -55,6 +57,13 @@ class NodeView:
     safe_state: bool
     safe_reason: str
     max_command_age_s: float
+    """The node's limit on a command's age, already under the site's ceiling."""
+
+
+def age_limit_s(cmd: OutputCommand, node_limit_s: float) -> float:
+    """The effective limit on `cmd`'s age: the node's, or the command's own when lower."""
+    own = cmd.max_age_s
+    return own if 0 < own < node_limit_s else node_limit_s
 
 
 def check_command(
@@ -69,17 +78,22 @@ def check_command(
         shape = f"max_age_s must be a number >= 0 (got {cmd.max_age_s!r})"
     if shape is not None:
         return Refusal("not_allowed", shape)
-    max_age = cmd.max_age_s or node.max_command_age_s
+    max_age = age_limit_s(cmd, node.max_command_age_s)
     age = (now_ns - cmd.issued_ns) / 1e9
+    note = (
+        f"; its own max_age_s {cmd.max_age_s:g} cannot raise this node's limit"
+        if cmd.max_age_s > max_age
+        else ""
+    )
     if age > max_age:
         return Refusal(
             "too_old",
-            f"issued {age:.3f} s ago by this edge's clock, older than {max_age:g} s",
+            f"issued {age:.3f} s ago by this edge's clock, older than {max_age:g} s{note}",
         )
     if age < -max_age:
         return Refusal(
             "too_old",
-            f"issued {-age:.3f} s in the future by this edge's clock (limit {max_age:g} s): "
+            f"issued {-age:.3f} s in the future by this edge's clock (limit {max_age:g} s{note}): "
             "the hub's clock and this edge's disagree",
         )
     if cmd.action in ("read", "disarm"):

@@ -416,6 +416,8 @@ class OutputReply:
     safe_state: bool
     interlocks: tuple[str, ...]
     replied_ns: int
+    replay: bool = False
+    """A command id the edge had answered before: this is that reply, nothing was done again."""
 
     def __post_init__(self) -> None:
         if self.refusal and self.refusal not in REFUSALS:

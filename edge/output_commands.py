@@ -1,31 +1,52 @@
-"""What the edge answers to one command: decode it, answer a retry as before, check it
+"""What the edge answers to one command: decode it, answer a replay as before, check it
 (`edge.command_check`), do it on the output's device, build the `OutputReply`, raise the
 event. Called by the output service's worker thread only.
 
-A command id seen before is answered with the reply it got then (the last `REPLY_MEMORY`
-ids), so a retried command is applied at most once; the same id with another command is
-refused (not_allowed). Refusals before a command could be read (a payload that is not an
-OutputCommand, a command on another output's key) are not remembered.
+A command id seen before with the same command (a retry, or a replay of captured bytes) is
+answered with the reply it got then, marked ``replay``: the original outcome, readback and
+times, never applied again and never read back anew. The same id with another command is
+refused (not_allowed). Ids are remembered for as long as their command could pass the age
+check (`issued_ns` + the effective age limit, never above the site's ceiling
+`commands.max_age_s`), and at most `REPLY_MEMORY` of them: an id forgotten is one whose
+command is too old by then, so its replay is refused `too_old` and still not applied again.
+With the memory full of ids still young enough, a new command is refused (not_allowed, busy)
+rather than forget one that could still be replayed. Not remembered: reads (they move
+nothing), and refusals before a command could be read (a payload that is not an
+OutputCommand, requester text that breaks `edge.requester_text`, a command on another
+output's key).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Protocol
 
 from edge.cdr import decode, encode
-from edge.command_check import NodeView, Refusal, check_command
+from edge.command_check import NodeView, Refusal, age_limit_s, check_command
 from edge.drivers.pacing import TimeSource
 from edge.errors import DriverError, WireError
 from edge.event_publisher import EventPublisher
 from edge.interlocks import Interlocks
 from edge.messages import OutputCommand, OutputReply
 from edge.output_channel import OutputChannel, Pulse
+from edge.requester_text import text_problem
 
-REPLY_MEMORY = 1000
-"""Command ids whose reply is kept for retries."""
+REPLY_MEMORY = 10_000
+"""Command ids whose reply is kept at most (each for as long as its command could be applied)."""
+TEXT_LIMITS = (("command_id", 128), ("who", 400), ("reason", 500))
+"""The command's requester text and its limits (characters): the hub sends user@host as who."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Answered:
+    command: OutputCommand
+    reply: OutputReply
+    until_ns: int
+    """After this (edge CLOCK_REALTIME), a replay of the command would be too old."""
 
 
 class SafeState(Protocol):
@@ -50,7 +71,10 @@ class CommandDesk:
         clock: TimeSource,
         state: SafeState,
         max_command_age_s: float,
+        memory: int = REPLY_MEMORY,
     ) -> None:
+        """`max_command_age_s`: the node's limit under the site's ceiling; `memory`: the most
+        command ids remembered for replays."""
         self.node = node
         self.channels = channels
         self.interlocks = interlocks
@@ -60,7 +84,8 @@ class CommandDesk:
         self.max_command_age_s = max_command_age_s
         self.malformed = 0
         self._malformed_reported = 0
-        self._replies: OrderedDict[str, tuple[OutputCommand, bytes]] = OrderedDict()
+        self.memory = memory
+        self._replies: OrderedDict[str, _Answered] = OrderedDict()
 
     def decide(self, output: str, data: bytes) -> bytes:
         """The reply (encoded) to a query on the key of `output` carrying `data`."""
@@ -76,25 +101,34 @@ class CommandDesk:
                 f"the command names output {cmd.output!r} but came on the key of {output!r}",
             )
             return self._finish(cmd, output, elsewhere, remember=False)
+        for field, limit in TEXT_LIMITS:
+            why = text_problem(getattr(cmd, field), limit)
+            if why is not None:
+                # Not echoed anywhere: the text is what could not be recorded.
+                self.malformed += 1
+                self._report_malformed(output, f"{field} {why}")
+                bad = Refusal("not_allowed", f"{field} {why}")
+                answered = cmd if field != "command_id" else None
+                return encode(self.reply(answered, output, bad))
+        now_ns = self.clock.time_ns()
+        self._forget(now_ns)
         seen = self._replies.get(cmd.command_id)
         if seen is not None:
-            first, payload = seen
-            if _same(first, cmd):
-                self._replies.move_to_end(cmd.command_id)
-                self.events.emit(
-                    logging.INFO,
-                    cmd.output,
-                    "command_retried",
-                    f"{cmd.command_id}: a retry, answered as before (not applied again)",
-                    command_id=cmd.command_id,
-                    output=cmd.output,
-                    action=cmd.action,
-                )
-                return payload
+            if _same(seen.command, cmd):
+                return self._replay(cmd, seen, now_ns)
             reused = Refusal(
                 "not_allowed", f"command id {cmd.command_id!r} was used for another command"
             )
             return self._finish(cmd, output, reused, remember=False)
+        if len(self._replies) >= self.memory and cmd.action != "read":
+            soonest = min(seen.until_ns for seen in self._replies.values())
+            busy = Refusal(
+                "not_allowed",
+                f"busy: {len(self._replies)} commands young enough to be replayed are "
+                "remembered, the most this edge keeps (a replay could not be told from a new "
+                f"command); try again in {max(0.0, (soonest - now_ns) / 1e9):.1f} s",
+            )
+            return self._finish(cmd, output, busy, remember=False)
         ch = self.channels.get(cmd.output)
         if ch is None:
             known = ", ".join(self.channels) or "none"
@@ -104,7 +138,7 @@ class CommandDesk:
             return self._finish(cmd, output, unknown)
         node = NodeView(self.state.safe_state, self.state.safe_reason, self.max_command_age_s)
         view = ch.view(self.interlocks.active_for(ch.name))
-        refusal = check_command(cmd, view, node, self.clock.time_ns(), ch.now_s())
+        refusal = check_command(cmd, view, node, now_ns, ch.now_s())
         if refusal is None:
             refusal = self._apply(cmd, ch)
         if refusal is None:
@@ -112,6 +146,45 @@ class CommandDesk:
         else:
             ch.refused += 1
         return self._finish(cmd, output, refusal)
+
+    def _replay(self, cmd: OutputCommand, seen: _Answered, now_ns: int) -> bytes:
+        """The reply `cmd`'s id got the first time, marked as a replay; a retry stamped anew
+        keeps the id remembered for as long as it could itself be applied."""
+        until = cmd.issued_ns + int(age_limit_s(cmd, self.max_command_age_s) * 1e9)
+        if until > seen.until_ns:
+            self._replies[cmd.command_id] = dataclasses.replace(seen, until_ns=until)
+        self._replies.move_to_end(cmd.command_id)
+        first = seen.reply
+        outcome = (
+            f"applied, read back {first.readback:g}"
+            if first.applied
+            else f"refused: {first.refusal}"
+        )
+        self.events.emit(
+            logging.INFO,
+            cmd.output,
+            "command_retried",
+            f"{cmd.command_id}: a replay, answered with its original outcome ({outcome}, "
+            f"{(now_ns - first.replied_ns) / 1e9:.3f} s ago); not applied again",
+            command_id=cmd.command_id,
+            output=cmd.output,
+            action=cmd.action,
+            applied=str(first.applied).lower(),
+        )
+        return encode(dataclasses.replace(first, replay=True))
+
+    def _forget(self, now_ns: int) -> None:
+        """Forget the ids whose commands are too old to be applied now: from the front (the
+        order ids were last seen in), and all through once the memory is full."""
+        replies = self._replies
+        while replies:
+            oldest = next(iter(replies.values()))
+            if oldest.until_ns >= now_ns:
+                break
+            replies.popitem(last=False)
+        if len(replies) >= self.memory:
+            for key in [k for k, seen in replies.items() if seen.until_ns < now_ns]:
+                del replies[key]
 
     def _apply(self, cmd: OutputCommand, ch: OutputChannel) -> Refusal | None:
         """Do what an allowed command says; a device's refusal is the reply."""
@@ -142,10 +215,9 @@ class CommandDesk:
     ) -> bytes:
         reply = self.reply(cmd, output, refusal)
         payload = encode(reply)
-        if remember:
-            self._replies[cmd.command_id] = (cmd, payload)
-            while len(self._replies) > REPLY_MEMORY:
-                self._replies.popitem(last=False)
+        if remember and cmd.action != "read":
+            until = cmd.issued_ns + int(age_limit_s(cmd, self.max_command_age_s) * 1e9)
+            self._replies[cmd.command_id] = _Answered(cmd, reply, until)
         applied = refusal is None
         level = logging.INFO if applied else logging.WARNING
         if cmd.action == "read":
@@ -195,8 +267,8 @@ class CommandDesk:
                 logging.WARNING,
                 "outputs",
                 "malformed_command",
-                f"refused a payload on out/{output} that is not an OutputCommand ({why}); "
-                f"{n} so far",
+                f"refused a payload on out/{output} that is not an OutputCommand this edge "
+                f"can apply and record ({why}); {n} so far",
                 output=output,
                 count=n,
             )

@@ -79,7 +79,10 @@ class OutputService:
         events: EventPublisher,
         shared: SharedDevices | None = None,
         clock: TimeSource = SYSTEM_TIME,
+        command_age_limit_s: float | None = None,
     ) -> None:
+        """`command_age_limit_s`: the site's `command_age_limit_s(node)` (the node's own
+        `max_command_age_s` under the site's ceiling); default: the node's own."""
         self.node = node
         self.keys = SiteKeys(site)
         self.control = cfg.control
@@ -113,7 +116,7 @@ class OutputService:
             events,
             clock,
             self,
-            self.control.max_command_age_s,
+            command_age_limit_s or self.control.max_command_age_s,
         )
         self._queryable: Any = None
         self._beat_sub: Any = None

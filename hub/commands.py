@@ -4,8 +4,17 @@ Operators (``fleetdaq out ...``: a JSON request on ``fleetdaq/<site>/hub/out``) 
 this process) ask `CommandService.send`; it checks the output exists in the site file and
 that no hub interlock holds it, sends an `OutputCommand` to the edge's queryable
 (``fleetdaq/<site>/<node>/out/<output>``), waits for the `OutputReply` (or times out), and
-records the pair as a `CommandRecord` on ``/<node>/commands`` and as an event. Sending blocks
-only the caller's thread: operators' requests run on a small pool, never on a Zenoh callback.
+records the pair as a `CommandRecord` on ``/<node>/commands`` and as an event. A command to a
+node the site file does not have is refused here and recorded on ``/hub/commands``: no channel
+is ever named by a requester. Sending blocks only the caller's thread: operators' requests run
+on a small pool, never on a Zenoh callback.
+
+Every command carries the node's age limit as its `max_age_s` (`SiteConfig.command_age_limit_s`:
+never above the site's ceiling `commands.max_age_s`). An operator's text (reason, user, host,
+command id, output) is checked first (`edge.requester_text`): a request that breaks the rule is
+answered with the reason and nothing else happens (no command, no record, no event). An edge's
+reply marked ``replay`` (a command id it had answered) is recorded as such and is not counted
+as applied again.
 """
 
 from __future__ import annotations
@@ -32,10 +41,13 @@ from edge.messages import (
 from hub.bus import EventBus
 from hub.read_model import HubView, ReadModel, to_jsonable
 from hub.recorder import Recorder
-from hub.requests import Caller, OperatorQueryable, as_caller, parse_object
+from hub.requests import Caller, OperatorQueryable, as_caller, parse_object, text
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.commands")
+
+HUB_COMMANDS_TOPIC = "/hub/commands"
+"""Where commands to nodes the site file does not have are recorded (refused)."""
 
 Blocked = Callable[[str, str], str | None]
 """blocked(node, output): the name of a hub interlock holding that output, or None."""
@@ -77,6 +89,7 @@ class CommandService:
         self.applied = 0
         self.refused = 0
         self.timeouts = 0
+        self.replayed = 0
         self._lock = threading.Lock()
         # Operators' requests block while the edge is asked: a small pool answers them.
         self.queryable = OperatorQueryable(
@@ -130,7 +143,7 @@ class CommandService:
             who=who,
             reason=reason,
             issued_ns=time.time_ns(),
-            max_age_s=0.0,
+            max_age_s=self.age_limit_s(node),
         )
         sent_ns = time.time_ns()
         if f"{node}/{output}" not in self.outputs():
@@ -145,6 +158,13 @@ class CommandService:
             reply = self._ask(node, cmd)
         self._record(node, cmd, reply, sent_ns)
         return cmd, reply
+
+    def age_limit_s(self, node: str) -> float:
+        """The `max_age_s` the hub stamps on a command to `node` (the site's ceiling for a
+        node it does not know: such a command is never sent)."""
+        if node in self.site.nodes:
+            return self.site.command_age_limit_s(node)
+        return self.site.commands.max_age_s
 
     def send_unblocked(
         self,
@@ -182,33 +202,50 @@ class CommandService:
         now = time.time_ns()
         with self._lock:
             self.sent += 1
-            if reply.applied:
+            if reply.replay:
+                self.replayed += 1
+            elif reply.applied:
                 self.applied += 1
             else:
                 self.refused += 1
                 self.timeouts += reply.refusal == "timeout"
         record = CommandRecord(cmd, reply, node, sent_ns, now)
-        self.recorder.record(f"/{node}/commands", encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
+        topic = f"/{node}/commands" if node in self.site.nodes else HUB_COMMANDS_TOPIC
+        self.recorder.record(topic, encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
         what = f"{cmd.action} {cmd.value:g}" if cmd.action in ("set", "pulse") else cmd.action
         by = f"{cmd.sender} {cmd.who}".strip()
-        if reply.applied:
+        tag = "command_applied" if reply.applied else "command_refused"
+        if reply.replay:
+            tag = "command_replayed"
+            first = time.strftime("%H:%M:%S", time.gmtime(reply.replied_ns / 1e9))
+            outcome = (
+                f"applied, readback {reply.readback:g}"
+                if reply.applied
+                else f"refused: {reply.refusal}: {reply.message}"
+            )
+            line = (
+                f"{node}/{cmd.output}: {what} is a replay of command {cmd.command_id}, answered "
+                f"with its original outcome ({outcome}, at {first} UTC); not applied again "
+                f"— by {by}"
+            )
+        elif reply.applied:
             readback = (
                 ""
                 if math.isnan(reply.readback)
                 else f", readback {reply.readback:g} ({reply.readback_source})"
             )
-            text = f"{node}/{cmd.output}: {what} applied{readback} — by {by}"
+            line = f"{node}/{cmd.output}: {what} applied{readback} — by {by}"
         else:
-            text = (
+            line = (
                 f"{node}/{cmd.output}: {what} refused: {reply.refusal}: {reply.message} — by {by}"
             )
         if cmd.reason:
-            text += f"; reason: {cmd.reason}"
+            line += f"; reason: {cmd.reason}"
         self.bus.emit(
             logging.INFO if reply.applied else logging.WARNING,
             "commands",
-            "command_applied" if reply.applied else "command_refused",
-            text,
+            tag,
+            line,
             command_id=cmd.command_id,
             node=node,
             output=cmd.output,
@@ -217,11 +254,12 @@ class CommandService:
             sender=cmd.sender,
             who=cmd.who,
             refusal=reply.refusal,
+            replay=reply.replay,
         )
         self.model.put(
             "commands",
             {"sent": self.sent, "applied": self.applied, "refused": self.refused,
-             "timeouts": self.timeouts},
+             "timeouts": self.timeouts, "replayed": self.replayed},
         )  # fmt: skip
 
     # --- operators' requests ----------------------------------------------------------------
@@ -264,8 +302,8 @@ class CommandService:
         out: dict[str, Any] = {"action": action}
         if action == "list":
             return out
-        output = req.get("output")
-        if not isinstance(output, str) or output.count("/") != 1 or len(output) > 200:
+        output = text(req, "output", 200)
+        if output.count("/") != 1:
             raise ValueError("output must be NODE/OUTPUT")
         out["output"] = output
         for key, default in (("value", math.nan), ("pulse_s", 0.0)):
@@ -281,14 +319,11 @@ class CommandService:
             raise ValueError(f"{action} needs a value")
         if action == "pulse" and not 0 < out["pulse_s"] <= 3600:
             raise ValueError("a pulse lasts more than 0 s and at most 3600 s")
-        for key, limit in (("reason", 500), ("user", 100), ("host", 255), ("command_id", 128)):
-            v = req.get(key, "")
-            if not isinstance(v, str) or len(v) > limit:
-                raise ValueError(f"{key} must be text of at most {limit} characters")
-            out[key] = v
-        out["user"] = out["user"] or "unknown"
-        out["host"] = out["host"] or "unknown"
-        out["command_id"] = out["command_id"] or None
+        # Requester text: checked before anything is sent, so that what is done can be recorded.
+        out["reason"] = text(req, "reason", 500)
+        out["user"] = text(req, "user", 100, "unknown")
+        out["host"] = text(req, "host", 255, "unknown")
+        out["command_id"] = text(req, "command_id", 128) or None
         return out
 
     def listing(self) -> list[dict[str, Any]]:

@@ -121,6 +121,40 @@ def test_too_old_uses_the_commands_own_age_limit_else_the_nodes() -> None:
     assert _why(_cmd(issued_ns=two_s_old, max_age_s=3.0)) == ""
 
 
+def test_a_commands_own_max_age_can_only_lower_the_nodes_limit() -> None:
+    six_s_old = NOW_NS - 6 * 10**9
+    assert _why(_cmd(issued_ns=six_s_old, max_age_s=60.0)) == "too_old"
+    refusal = check_command(_cmd(issued_ns=six_s_old, max_age_s=60.0), _view(), READY, NOW_NS,
+                            NOW_S)  # fmt: skip
+    assert refusal is not None
+    assert "older than 5 s; its own max_age_s 60 cannot raise this node's limit" in refusal.message
+
+
+def test_a_command_issued_in_1970_that_allows_itself_1e300_s_is_too_old() -> None:
+    refusal = check_command(_cmd(issued_ns=0, max_age_s=1e300), _view(), READY, NOW_NS, NOW_S)
+    assert refusal is not None
+    assert refusal.reason == "too_old"
+    assert "older than 5 s" in refusal.message
+    future = _cmd(issued_ns=NOW_NS + 10**15, max_age_s=1e300)
+    assert _why(future) == "too_old"
+
+
+def test_the_nodes_limit_never_exceeds_the_sites_ceiling() -> None:
+    text = (
+        "site: s\n{ceiling}nodes:\n  n:\n    streams: {{s: {{driver: wave_sim, rate_hz: 1, "
+        "channels: [{{name: x}}]}}}}\n{control}"
+    )
+    default = parse_config(text.format(ceiling="", control=""), "t")
+    assert default.commands.max_age_s == 10.0
+    assert default.command_age_limit_s("n") == 5.0  # the node's own default is lower
+    lowered = parse_config(text.format(ceiling="commands: {max_age_s: 2}\n", control=""), "t")
+    assert lowered.command_age_limit_s("n") == 2.0  # the node's default above it: the ceiling
+    raised = parse_config(
+        text.format(ceiling="", control="    control: {max_command_age_s: 9}\n"), "t"
+    )
+    assert raised.command_age_limit_s("n") == 9.0
+
+
 def test_too_fast_is_the_step_over_the_time_since_the_last_change() -> None:
     assert _why(_cmd(value=0.5), _view(changed_s=NOW_S - 1)) == ""  # 0.5 V in 1 s at 0.5 V/s
     assert _why(_cmd(value=0.6), _view(changed_s=NOW_S - 1)) == "too_fast"

@@ -142,6 +142,11 @@ BAD: dict[str, tuple[str, str]] = {
         "nodes.rig.control.safe_after_s",
         "must be at least 0.5",
     ),
+    "bad_commands_node_age_above_ceiling.yaml": (
+        "nodes.rig.control.max_command_age_s",
+        "30 s is above the site's ceiling commands.max_age_s (10 s)",
+    ),
+    "bad_commands_ceiling_unbounded.yaml": ("commands.max_age_s", "at most 3600"),
     "bad_weld_cell_unknown.yaml": (
         "nodes.rig.streams.tc.sim.cell",
         "no weld_robot_sim stream with cell 'weld2'",

@@ -5,6 +5,7 @@ value and its hardware watchdog once it answers again."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from typing import Any
@@ -13,8 +14,10 @@ import pytest
 
 from edge.cdr import decode, encode
 from edge.config.load import parse_config
+from edge.drivers.pacing import VirtualTime
 from edge.event_publisher import EventPublisher
 from edge.messages import OutputCommand, OutputReply
+from edge.output_commands import CommandDesk
 from edge.outputs import QUEUE_LIMIT, OutputService
 from tests.procs import wait_until
 
@@ -122,3 +125,39 @@ def test_a_device_that_fails_at_start_gets_its_initial_value_once_it_answers(
     finally:
         service.close()
     assert relay.readback == 0.0  # safe at stop
+
+
+def test_command_ids_are_remembered_while_their_command_could_be_applied_and_no_longer() -> None:
+    clock = VirtualTime()
+    t0 = clock.time_ns()
+    service = _service()  # never started: in its safe state, every set is refused safe_state
+    desk = CommandDesk("n", service.channels, service.interlocks, service.events, clock, service,
+                       max_command_age_s=5.0, memory=3)  # fmt: skip
+
+    def send(
+        i: int, action: str = "set", max_age_s: float = 0.0, issued_ns: int = 0
+    ) -> OutputReply:
+        cmd = OutputCommand(f"c{i}", "heater", action, 1.0, 0.0, "operator", "t", "r",
+                            issued_ns or clock.time_ns(), max_age_s)  # fmt: skip
+        return decode(desk.decide("heater", encode(cmd)), OutputReply)
+
+    first = send(1)
+    assert (first.refusal, first.replay) == ("safe_state", False)
+    clock.advance(4 * 10**9)
+    again = send(1, issued_ns=t0)  # the same bytes 4 s later: still young enough
+    assert encode(again) == encode(dataclasses.replace(first, replay=True))  # NaN readback
+    send(2, max_age_s=1.0)  # its own limit: remembered for 1 s only
+    send(3)
+    busy = send(4)
+    assert (busy.refusal, busy.replay) == ("not_allowed", False)
+    assert busy.message.startswith("busy: 3 commands young enough to be replayed are remembered")
+    assert busy.message.endswith("try again in 1.0 s")
+    assert send(4, "read").refusal == "", "a read moves nothing: never refused for the memory"
+    clock.advance(int(1.5e9))  # c1 (5 s) and c2 (1 s) are too old now: forgotten
+    assert send(4).refusal == "safe_state"
+    late = send(1, issued_ns=t0)
+    assert (late.refusal, late.replay) == ("too_old", False), "forgotten, and too old by then"
+    clock.advance(3 * 10**9)  # c3 was sent 4.5 s ago: a retry stamped anew keeps it longer
+    assert send(3).replay
+    clock.advance(4 * 10**9)
+    assert send(3, issued_ns=t0 + 4 * 10**9).replay, "remembered as long as the retry lives"

@@ -187,15 +187,59 @@ def test_applied_commands_read_back_from_the_device_and_a_retry_is_applied_once(
     assert first["requested"] == 1.2
     assert d.command("heater", value=2.0, command_id="retry-2")["applied"]
     again = d.command("heater", value=1.2, command_id="retry-1")
-    assert again == first  # the stored reply, byte for byte (same replied_ns)
+    assert first["replay"] is False
+    assert again == first | {"replay": True}  # the stored reply (same readback, replied_ns)
     now = d.command("heater", "read")
     assert now["readback"] == pytest.approx(2.0, abs=3.3 / 4096)  # not applied a second time
+    restamped = d.command("heater", value=1.2, command_id="retry-1", issued_ns=time.time_ns())
+    assert restamped == again, "a retry stamped anew is a replay all the same"
     reused = d.command("heater", value=0.3, command_id="retry-1")
     assert reused["refusal"] == "not_allowed"
     assert "another command" in reused["message"]
     on = d.command("relay", value=1)
     assert (on["applied"], on["readback"]) == (True, 1.0)  # active-low pin read back, inverted
     assert d.events("command_retried")
+
+
+def test_a_replayed_refusal_is_its_original_refusal_and_reads_are_never_replays(rig: Rig) -> None:
+    d = rig.double
+    refused = d.command("heater", value=9, command_id="replay-refused")
+    assert refused["refusal"] == "out_of_limits"
+    again = d.command("heater", value=9, command_id="replay-refused")
+    assert again == refused | {"replay": True}
+    reads = [d.command("heater", "read", command_id="read-1") for _ in range(2)]
+    assert [r["replay"] for r in reads] == [False, False]
+
+
+def test_a_command_from_1970_that_allows_itself_1e300_s_is_too_old(rig: Rig) -> None:
+    d = rig.double
+    _arm(d, "heater")
+    before = d.command("heater", "read")["readback"]
+    for issued_ns in (1, time.time_ns() - 6 * 10**9, time.time_ns() + 6 * 10**9):
+        reply = d.command("heater", value=2.9, issued_ns=issued_ns, max_age_s=1e300)
+        assert (reply["applied"], reply["refusal"]) == (False, "too_old"), reply
+        assert "its own max_age_s 1e+300 cannot raise this node's limit" in reply["message"]
+    assert d.command("heater", "read")["readback"] == before
+
+
+def test_requester_text_an_edge_cannot_record_is_refused_before_anything_is_done(
+    rig: Rig,
+) -> None:
+    d = rig.double
+    _arm(d, "heater")
+    before = d.command("heater", "read")["readback"]
+    for field, text in (("reason", "on\x1b[2J"), ("who", "eve\nroot"), ("reason", "r" * 501),
+                        ("command_id", "bad\u202etext")):  # fmt: skip
+        fields = {"command_id": "bad-text", field: text}
+        reply = d.command("heater", value=2.9, **fields)
+        assert reply["refusal"] == "not_allowed", reply
+        assert reply["command_id"] == ("" if field == "command_id" else "bad-text")
+        assert reply["message"].startswith(f"{field} holds a ") or "at most" in reply["message"]
+    assert d.command("heater", "read")["readback"] == before
+    assert not [e for e in d.events() if "bad" in e["fields"].get("command_id", "")]
+    assert d.events("malformed_command")
+    kindly = d.command("heater", value=1.0, who="jürgen@prüfstand", reason="Aufheizen 温度 ✓")
+    assert kindly["applied"], kindly
 
 
 def test_a_pulse_returns_to_the_previous_value_without_blocking_other_commands(

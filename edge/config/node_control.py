@@ -1,4 +1,5 @@
-"""A node's control settings: the dead-man safe state, command ages and edge interlocks.
+"""Control settings: the site's ceiling on a command's age (`commands:`), and a node's own
+(`nodes.N.control:`): the dead-man safe state, its command age and edge interlocks.
 
 The outputs themselves are in each driver's module (`edge.drivers.table.OUTPUTS`).
 """
@@ -14,6 +15,22 @@ from edge.schema import Float, Name, Strict
 CHANNEL_REF = r"^[a-z][a-z0-9_-]{0,62}/[A-Za-z][A-Za-z0-9_.-]{0,62}$"
 
 
+DEFAULT_COMMAND_AGE_CEILING_S = 10.0
+
+
+class CommandsConfig(Strict):
+    """Site-wide rules for commands to outputs (``commands:``)."""
+
+    max_age_s: Annotated[Float, Field(gt=0, le=3600)] = DEFAULT_COMMAND_AGE_CEILING_S
+    """The ceiling on a command's age: no edge applies a command whose `issued_ns` is further
+    than this from its own clock (either way), whatever the command's own `max_age_s` says
+    (a sender may only lower it) and whatever a node's `control.max_command_age_s` says (it
+    may not be above). Also how long an edge remembers a command id at most: a replay of a
+    command it no longer remembers is too old by then. 10 s: twice the hub's 5 s wait for a
+    reply, room for a node on a slow link or with a clock a second or two off; short enough
+    that nothing captured on the network can be replayed later."""
+
+
 class ControlConfig(Strict):
     """How the edge guards its outputs on its own."""
 
@@ -22,7 +39,9 @@ class ControlConfig(Strict):
     value. Also the T8 hardware watchdog's timeout (rounded up to whole seconds)."""
     max_command_age_s: Annotated[Float, Field(gt=0, le=3600)] = 5.0
     """A command whose `issued_ns` is further than this from the edge's clock (either way) is
-    refused `too_old`, unless the command carries its own `max_age_s`."""
+    refused `too_old`; a command's own `max_age_s` may only lower it. At most the site's
+    `commands.max_age_s` (written above it: an error; the default above a lower ceiling: the
+    ceiling)."""
     readback_s: Annotated[Float, Field(ge=0.05, le=60)] | None = None
     """How often every output is read back (this also feeds the T8's hardware watchdog);
     default: a quarter of safe_after_s, at most 1 s."""

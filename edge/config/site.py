@@ -14,6 +14,7 @@ from edge.config.alarms import AlarmName, AlarmSpec, alarm_names
 from edge.config.control import RuleConfig, RuleName, referenced
 from edge.config.hub import HubConfig
 from edge.config.node import NodeConfig
+from edge.config.node_control import CommandsConfig
 from edge.config.security import SecurityConfig
 from edge.schema import NAME, NodeName, Strict
 
@@ -29,6 +30,8 @@ class SiteConfig(Strict):
     """The site's own alarms (`edge.config.alarms`); universal ones: `hub.universal_alarms`."""
     rules: dict[RuleName, RuleConfig] = {}
     """Control rules evaluated on the hub (`edge.config.control`)."""
+    commands: CommandsConfig = CommandsConfig()
+    """The site's ceiling on a command's age (`edge.config.node_control`)."""
     security: SecurityConfig = SecurityConfig()
     """Mutual TLS and access control (`edge.config.security`)."""
 
@@ -62,6 +65,26 @@ class SiteConfig(Strict):
                     )
                 listened[endpoint] = f"hub.partitions.{name}.listen"
         return self
+
+    @model_validator(mode="after")
+    def _command_ages_under_the_ceiling(self) -> SiteConfig:
+        ceiling = self.commands.max_age_s
+        for node, cfg in self.nodes.items():
+            control = cfg.control
+            if "max_command_age_s" in control.model_fields_set and (
+                control.max_command_age_s > ceiling
+            ):
+                raise ValueError(
+                    f"nodes.{node}.control.max_command_age_s: {control.max_command_age_s:g} s is "
+                    f"above the site's ceiling commands.max_age_s ({ceiling:g} s); lower it, or "
+                    "raise the ceiling"
+                )
+        return self
+
+    def command_age_limit_s(self, node: str) -> float:
+        """The oldest a command to `node` may be (either way of its clock), in seconds: its
+        `control.max_command_age_s`, never above the site's `commands.max_age_s`."""
+        return min(self.nodes[node].control.max_command_age_s, self.commands.max_age_s)
 
     @model_validator(mode="after")
     def _tls_everywhere(self) -> SiteConfig:

@@ -71,13 +71,37 @@ def list_outputs(config: str, connect: tuple[str, ...], as_json: bool) -> None:
         click.echo("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
 
 
+_COMMAND_ID = click.option(
+    "--command-id",
+    default="",
+    help="An id of your own: sending it again (a retry) is answered with the first outcome, "
+    "marked as a replay, and never applied twice.",
+)
+
+
 @reads_hub_answer
-def _command(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> None:
+def _command(
+    config: str, connect: tuple[str, ...], body: dict[str, Any], command_id: str = ""
+) -> None:
     body = {**body, "user": getpass.getuser(), "host": socket.gethostname()}
+    if command_id:
+        body["command_id"] = command_id
     reply = _request(config, connect, body, 30.0)
     if reply.get("error"):
         fail(f"{body['action']} {body['output']}: {reply['error']}", 2)
     r = reply["reply"]
+    if r.get("replay"):
+        outcome = (
+            f"applied then; readback then {_fmt(r['readback'])}"
+            if r["applied"]
+            else f"refused then: {r['refusal']}: {r['message']}"
+        )
+        click.echo(
+            f"{body['output']}: {body['action']} is a replay of command {r['command_id']}: "
+            f"{outcome}; not applied again",
+            err=not r["applied"],
+        )
+        sys.exit(0 if r["applied"] else 1)
     if r["applied"]:
         readback = _fmt(r["readback"])
         source = (
@@ -98,11 +122,18 @@ def _command(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> Non
 @click.argument("output")
 @click.argument("value", type=float)
 @click.option("--reason", default="", help="Why (recorded with the command).")
+@_COMMAND_ID
 def set_output(
-    config: str, connect: tuple[str, ...], output: str, value: float, reason: str
+    config: str,
+    connect: tuple[str, ...],
+    output: str,
+    value: float,
+    reason: str,
+    command_id: str,
 ) -> None:
     """Set NODE/OUTPUT to VALUE."""
-    _command(config, connect, {"action": "set", "output": output, "value": value, "reason": reason})
+    body = {"action": "set", "output": output, "value": value, "reason": reason}
+    _command(config, connect, body, command_id)
 
 
 @out.command()
@@ -117,30 +148,38 @@ def set_output(
 )
 @click.option("--value", type=float, default=1.0, show_default=True, help="Held during the pulse.")
 @click.option("--reason", default="")
+@_COMMAND_ID
 def pulse(
-    config: str, connect: tuple[str, ...], output: str, for_s: float, value: float, reason: str
+    config: str,
+    connect: tuple[str, ...],
+    output: str,
+    for_s: float,
+    value: float,
+    reason: str,
+    command_id: str,
 ) -> None:
     """Pulse NODE/OUTPUT: VALUE for --for seconds, then back to what it was."""
-    _command(
-        config,
-        connect,
-        {"action": "pulse", "output": output, "value": value, "pulse_s": for_s, "reason": reason},
-    )
+    body = {"action": "pulse", "output": output, "value": value, "pulse_s": for_s, "reason": reason}
+    _command(config, connect, body, command_id)
 
 
 @out.command()
 @hub_options
 @click.argument("output")
 @click.option("--reason", default="")
-def arm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:
+@_COMMAND_ID
+def arm(config: str, connect: tuple[str, ...], output: str, reason: str, command_id: str) -> None:
     """Arm NODE/OUTPUT (needed before commands, and after a safe state)."""
-    _command(config, connect, {"action": "arm", "output": output, "reason": reason})
+    _command(config, connect, {"action": "arm", "output": output, "reason": reason}, command_id)
 
 
 @out.command()
 @hub_options
 @click.argument("output")
 @click.option("--reason", default="")
-def disarm(config: str, connect: tuple[str, ...], output: str, reason: str) -> None:
+@_COMMAND_ID
+def disarm(
+    config: str, connect: tuple[str, ...], output: str, reason: str, command_id: str
+) -> None:
     """Disarm NODE/OUTPUT (it refuses set and pulse until armed again)."""
-    _command(config, connect, {"action": "disarm", "output": output, "reason": reason})
+    _command(config, connect, {"action": "disarm", "output": output, "reason": reason}, command_id)
