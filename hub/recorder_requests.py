@@ -100,11 +100,11 @@ class RecorderRequests(RequestService):
         rec = self.recorder
         ok, result = True, ""
         if action == "start":
-            result = rec.start_recording(who)
+            result = rec.start_recording(who, note)
         elif action == "stop":
-            result = rec.stop_recording(who)
+            result = rec.stop_recording(who, note)
         elif action == "split":
-            result = rec.split(who)
+            result = rec.split(who, note)
             ok = result.startswith("closed")
         elif action == "snapshot":
             if self.snapshot is None:
