@@ -5,12 +5,11 @@ Reading (open to anyone who reaches the address when `open_view`, else after a l
 ``/api/events``; ``GET /metrics`` (Prometheus, never behind a login: a scraper has none).
 
 Acting (a login, this session's CSRF token in ``X-CSRF-Token``, an Origin that is this page's,
-a JSON body): ``POST /api/alarms`` (ack, shelve, unshelve, disable, enable), ``/api/outputs``
-(set, pulse, arm, disarm), ``/api/recorder`` (start, stop, split, snapshot). Each goes to the
-same ``handle`` the command line's request reaches (the same checks, text included), with
-``user`` and ``host`` always replaced by the logged-in user and the client's address, so every
-action's audit names who did it. The handlers block (an edge being asked, the journal
-fsynced): they run on a worker pool, never on the loop.
+a JSON body): ``POST /api/alarms`` (ack, shelve, unshelve), ``/api/outputs`` (set, pulse, arm,
+disarm), ``/api/recorder`` (start, stop, split, snapshot). Each goes to the same ``handle`` the
+command line's request reaches, with ``user`` and ``host`` always replaced by the logged-in
+user and the client's address, so every action's audit names who did it. The handlers block
+(an edge being asked, the journal fsynced): they run on a worker pool, never on the loop.
 
 Bad input is answered 400 with one line saying what is wrong (401 without a login, 403 for a
 failed CSRF/Origin check, 404 for what does not exist, 413 for a body over 64 KiB, 429 after
@@ -43,7 +42,7 @@ log = logging.getLogger("fleetdaq.dashboard")
 
 MAX_BODY = 64 * 1024
 STATIC = Path(__file__).resolve().parent / "static"
-ALARM_ACTIONS = ("ack", "shelve", "unshelve", "disable", "enable")
+ALARM_ACTIONS = ("ack", "shelve", "unshelve")
 OUTPUT_ACTIONS = ("set", "pulse", "arm", "disarm")
 RECORDER_ACTIONS = ("start", "stop", "split", "snapshot")
 
