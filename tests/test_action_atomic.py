@@ -181,3 +181,37 @@ def test_an_infinite_value_is_journaled_as_no_value_and_a_record_that_is_not_jso
         journal.close()
     (line,) = (tmp_path / "alarms.journal").read_text().splitlines()
     assert json.loads(line)["value"] is None
+
+
+def test_a_request_whose_handler_fails_is_still_answered_saying_so():
+    import zenoh
+
+    from edge.zenoh_session import client_config
+    from hub.requests import FAILED, Caller, OperatorQueryable
+    from hub.router import Router
+
+    def handler(raw: bytes, caller: Caller | None) -> dict[str, object]:
+        if raw == b"fail":
+            raise RuntimeError("a bug past the checks")
+        return {"ok": True, "error": ""}
+
+    port = free_port()
+    router = Router([f"tcp/127.0.0.1:{port}"])
+    router.start()
+    queryable = OperatorQueryable(router, "fleetdaq/atomic/hub/test", handler, None, "test")
+    queryable.start()
+    session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
+    try:
+
+        def ask(payload: bytes) -> object:
+            for reply in session.get("fleetdaq/atomic/hub/test", payload=payload, timeout=10.0):
+                if reply.ok is not None:
+                    return json.loads(reply.ok.payload.to_bytes())
+            return None
+
+        assert ask(b"fail") == {"ok": False, "error": FAILED}
+        assert ask(b"{}") == {"ok": True, "error": ""}, "the service goes on"
+    finally:
+        session.close()
+        queryable.stop()
+        router.stop()
