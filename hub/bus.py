@@ -34,6 +34,20 @@ def worth_telling(count: int, first: int = 1) -> bool:
     return count <= first or count % 1000 == 0
 
 
+def writable(text: str) -> str:
+    """`text` as UTF-8 can write it: a lone surrogate (which no encoder writes) becomes its
+    ``\\udXXX`` escape. Requester text is refused before it gets here
+    (`edge.requester_text`); this is the last line of defence, so that a string that slipped
+    through is still recorded, visibly, instead of stopping a log line or a record half way."""
+    if text.isascii():
+        return text
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return text
+
+
 _STOP = object()
 _FLUSH = object()
 
@@ -184,8 +198,12 @@ class EventBus:
                         other.offer(note)
 
     def emit(self, level: int, source: str, tag: str, message: str, /, **fields: object) -> None:
-        """Raise a hub event."""
-        self.publish(make_event(time.time_ns(), self.node, level, source, tag, message, **fields))
+        """Raise a hub event. Its text is made writable first (`writable`), so that no
+        subscriber (events.log, the recording, an e-mail) fails on it half way."""
+        values = {k: writable(str(v)) for k, v in fields.items()}
+        self.publish(
+            make_event(time.time_ns(), self.node, level, source, tag, writable(message), **values)
+        )
 
     def emit_counted(
         self, count: int, level: int, source: str, tag: str, message: str, /, **fields: object

@@ -62,8 +62,14 @@ class EventLog:
 
     def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # backslashreplace: a line holding text no encoder writes (a lone surrogate) is kept,
+        # escaped, instead of being lost as a write failure.
         self._file = _QuietRotatingFile(
-            self.path, maxBytes=self.max_bytes, backupCount=self.backups, encoding="utf-8"
+            self.path,
+            maxBytes=self.max_bytes,
+            backupCount=self.backups,
+            encoding="utf-8",
+            errors="backslashreplace",
         )
         self._file.setFormatter(logging.Formatter("%(message)s"))
 

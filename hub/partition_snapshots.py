@@ -22,6 +22,7 @@ import logging
 from typing import Any
 
 from edge.keys import SiteKeys
+from edge.requester_text import text_problem
 from hub.bus import EventBus
 from hub.requests import json_object
 from hub.router import Router
@@ -73,6 +74,9 @@ def parse_trigger(raw: bytes) -> dict[str, str]:
     for k, v in obj.items():
         if not isinstance(v, str) or len(v) > MAX_TEXT:
             raise ValueError(f"{k} is not a string of at most {MAX_TEXT} characters")
+        why = text_problem(v, MAX_TEXT)  # who and note are written into the snapshot's file
+        if why is not None:
+            raise ValueError(f"{k} {why}")
     needed = allowed[kind] - {"note"}
     if not needed <= set(obj):
         raise ValueError(f"missing {sorted(needed - set(obj))}")

@@ -508,8 +508,9 @@ class Recorder:
 
     # --- control ---------------------------------------------------------------------------------
 
-    def split(self, who: str = "") -> str:
-        """Close the current file now; the next message opens the next one."""
+    def split(self, who: str = "", note: str = "") -> str:
+        """Close the current file now; the next message opens the next one. `note`: why (the
+        requester's, in the event)."""
         with self.lock:
             assert self.session is not None
             if not self.recording:
@@ -524,14 +525,15 @@ class Recorder:
             "recorder",
             "split",
             f"file {current.name.removesuffix('.active')} closed on request"
-            + (f" by {who}" if who else ""),
+            + (f" by {who}" if who else "")
+            + (f": {note}" if note else ""),
             by=who,
         )
         return f"closed {current.name.removesuffix('.active')}"
 
-    def stop_recording(self, who: str) -> str:
+    def stop_recording(self, who: str, note: str = "") -> str:
         """Stop writing (files closed). Batches are still checked, counted and acked: the
-        edges owe nothing while the recorder is stopped."""
+        edges owe nothing while the recorder is stopped. `note`: why (in the event)."""
         with self.lock:
             if not self.recording:
                 return "already stopped"
@@ -546,14 +548,14 @@ class Recorder:
             "recorder",
             "recording_stopped",
             f"recording stopped by {who or 'someone'} (session {name} closed); batches are still "
-            "counted and acked but not recorded",
+            "counted and acked but not recorded" + (f": {note}" if note else ""),
             by=who,
             session=name,
         )
         return f"stopped; session {name} closed"
 
-    def start_recording(self, who: str) -> str:
-        """Start writing again, into a new session folder."""
+    def start_recording(self, who: str, note: str = "") -> str:
+        """Start writing again, into a new session folder. `note`: why (in the event)."""
         with self.lock:
             if self.recording:
                 return "already recording"
@@ -567,7 +569,8 @@ class Recorder:
             logging.INFO,
             "recorder",
             "recording_started",
-            f"recording started by {who or 'someone'} into session {name}",
+            f"recording started by {who or 'someone'} into session {name}"
+            + (f": {note}" if note else ""),
             by=who,
             session=name,
         )

@@ -5,7 +5,8 @@ Request: ``{"action": "status" | "start" | "stop" | "split" | "snapshot", "user"
 done, "recorder": the recorder's view, "snapshots": the snapshot buffer's view, "partitions":
 each partition hub as its report says (alive, its recorder), "partition_results": each
 partition hub's answer to a start, stop, split or snapshot}``. Every action is an event naming
-who asked (the recorder's and the snapshot buffer's own events).
+who asked (the recorder's and the snapshot buffer's own events). User, host and note follow the
+rule for requester text (`edge.requester_text`), checked before anything is done.
 
 On a partitioned site the main hub passes start, stop, split and snapshot on to every partition
 hub (`hub.partition_recorders`), and each partition hub answers these requests for its own
@@ -22,7 +23,16 @@ from edge.keys import SiteKeys
 from hub.partition_recorders import FORWARDED, PartitionRecorders
 from hub.read_model import HubView, to_jsonable
 from hub.recorder import Recorder
-from hub.requests import BadRequest, Caller, RequestService, as_caller, parse_object, text
+from hub.requests import (
+    MAX_HOST_CHARS,
+    MAX_USER_CHARS,
+    BadRequest,
+    Caller,
+    RequestService,
+    as_caller,
+    parse_object,
+    text,
+)
 from hub.router import Router
 
 ACTIONS = ("status", "start", "stop", "split", "snapshot")
@@ -72,8 +82,11 @@ class RecorderRequests(RequestService):
             refused = as_caller(req, caller, action, ("status",))
             if refused:
                 raise BadRequest(refused)
-            who = f"{text(req, 'user', 100, 'unknown')}@{text(req, 'host', 255, 'unknown')}"
+            # Every text before anything is done (`edge.requester_text`).
+            user = text(req, "user", MAX_USER_CHARS, "unknown")
+            host = text(req, "host", MAX_HOST_CHARS, "unknown")
             note = text(req, "note")
+            who = f"{user}@{host}"
         except BadRequest as err:
             return self._answer(False, str(err), "")
         collect = None
@@ -82,17 +95,16 @@ class RecorderRequests(RequestService):
         if self.partitions is not None and asks:
             # Asked first and all at once; they act while this hub does.
             collect = self.partitions.ask(
-                {"action": action, "user": req.get("user") or "unknown",
-                 "host": req.get("host") or "unknown", "note": note}
+                {"action": action, "user": user, "host": host, "note": note}
             )  # fmt: skip
         rec = self.recorder
         ok, result = True, ""
         if action == "start":
-            result = rec.start_recording(who)
+            result = rec.start_recording(who, note)
         elif action == "stop":
-            result = rec.stop_recording(who)
+            result = rec.stop_recording(who, note)
         elif action == "split":
-            result = rec.split(who)
+            result = rec.split(who, note)
             ok = result.startswith("closed")
         elif action == "snapshot":
             if self.snapshot is None:

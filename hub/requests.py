@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.config.security import SecurityConfig
-from edge.requester_text import TextRefused, checked_text
+from edge.requester_text import TextRefused, checked_text, text_problem
 from edge.threads import name_os_thread
 from hub.read_model import to_jsonable
 from hub.router import Router
@@ -25,6 +25,10 @@ from hub.router import Router
 log = logging.getLogger("fleetdaq.hub")
 
 MAX_REQUEST_BYTES = 64 * 1024
+MAX_USER_CHARS = 100
+MAX_HOST_CHARS = 255
+MAX_NOTE_CHARS = 500
+FAILED = "the hub failed while answering (see its log); ask for the state to see what was done"
 
 
 class BadRequest(ValueError):
@@ -58,7 +62,7 @@ def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
     return req
 
 
-def text(req: dict[str, Any], key: str, limit: int = 500, default: str = "") -> str:
+def text(req: dict[str, Any], key: str, limit: int = MAX_NOTE_CHARS, default: str = "") -> str:
     """The request's `key` as requester text (`edge.requester_text`: one line, no lone
     surrogate or control character, at most `limit` characters), `default` when empty."""
     try:
@@ -145,6 +149,9 @@ class OperatorQueryable:
                 return "security is on: ask as an operator (fleetdaq with your certificate)"
             return None
         name = key.removeprefix(f"{self.key}/by/")
+        why = text_problem(name, MAX_USER_CHARS)
+        if why is not None:  # security off: the key's name is the requester's own choice
+            return f"the user name in the key {why}"
         role = self.operators.get(name)
         if self.secure and role is not None:
             return Caller(name, role)
@@ -163,9 +170,15 @@ class OperatorQueryable:
                 reply = (
                     {"ok": False, "error": who} if isinstance(who, str) else self.handler(raw, who)
                 )
-                query.reply(key, json.dumps(to_jsonable(reply)).encode())
+                body = json.dumps(to_jsonable(reply)).encode()
             except Exception:  # one request must never take the service down
                 log.exception("answering a request on %s failed", key)
+                # The requester is told, never left waiting for a reply that does not come.
+                body = json.dumps({"ok": False, "error": FAILED}).encode()
+            try:
+                query.reply(key, body)
+            except Exception:
+                log.exception("replying to a request on %s failed", key)
 
         pool = self._pool
         if pool is None:

@@ -211,6 +211,21 @@ class RecordingSession:
         path = self.dir / f"{self.name}_{self._index:04d}.mcap"
         self._index += 1
         f = _OpenFile(path, self.cfg, now_ns)
+        try:
+            self._head(f, now_ns)
+        except BaseException:
+            # Nothing but the file's head was written: no half-begun .active file is left.
+            with contextlib.suppress(OSError):
+                f.fh.close()
+            with contextlib.suppress(OSError):
+                f.active.unlink()
+            raise
+        self._file = f
+        log.info("recording into %s", f.active)
+        return f
+
+    def _head(self, f: _OpenFile, now_ns: int) -> None:
+        """The session metadata, the extra metadata and the effective config, first in a file."""
         f.writer.add_metadata(
             "fleetdaq.session",
             {
@@ -235,9 +250,6 @@ class RecordingSession:
             media_type="application/yaml",
             data=self.config_yaml.encode(),
         )
-        self._file = f
-        log.info("recording into %s", f.active)
-        return f
 
     def due_split(self, now_ns: int) -> bool:
         f = self._file

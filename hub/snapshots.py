@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -237,6 +238,7 @@ class SnapshotBuffer:
         if not held:
             return False, "nothing held yet"
         now = time.time_ns()
+        session: RecordingSession | None = None
         try:
             session = RecordingSession(
                 self.root,
@@ -252,18 +254,21 @@ class SnapshotBuffer:
             for recv_ns, topic, payload, publish_ns, msgtype in held:
                 session.write(topic, payload, publish_ns, recv_ns, msgtype)
             session.close()
-        except OSError as err:
+        except Exception as err:  # a full disk, or text no encoder writes: no snapshot at all
+            if not isinstance(err, OSError):
+                log.exception("snapshot (%s) failed", why)
+            left = _discard(session)
             self.failed += 1
             self.bus.emit(
                 logging.ERROR,
                 "recorder",
                 "snapshot_failed",
-                f"snapshot ({why}) could not be written: {err}",
+                f"snapshot ({why}) could not be written: {err}{left}",
                 why=why,
                 by=who,
             )
             self._publish()
-            return False, f"could not write the snapshot: {err}"
+            return False, f"could not write the snapshot: {err}{left}"
         span_s = (held[-1][0] - held[0][0]) / 1e9
         path = str(session.dir)
         self.written.append(path)
@@ -307,3 +312,13 @@ class SnapshotBuffer:
 
     def _publish(self) -> None:
         self.model.put("snapshots", self.counters())
+
+
+def _discard(session: RecordingSession | None) -> str:
+    """Remove a snapshot that failed half way (its folder holds nothing else): no ``.active``
+    file is left for `fleetdaq verify` to find. What is said when part of it stays."""
+    if session is None:
+        return ""
+    session.abandon()
+    shutil.rmtree(session.dir, ignore_errors=True)
+    return f"; {session.dir} could not be removed" if session.dir.exists() else ""

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
@@ -174,3 +175,14 @@ def test_a_restarted_spool_numbering_is_counted_afresh_and_its_open_holes_lost()
         assert lost == 0
     assert st.contiguous == 2
     assert st.duplicates == 0
+
+
+def test_a_file_whose_head_cannot_be_written_leaves_no_active_file(tmp_path: Path):
+    cfg = RecorderConfig(file_duration_s=60)
+    # Metadata holding text no encoder writes (a lone surrogate), past every check upstream.
+    extra = {"fleetdaq.snapshot": {"note": "layer \ud800"}}
+    s = RecordingSession(tmp_path, "demo", ["wec"], cfg, "site: demo\n", T0, extra_metadata=extra)
+    with pytest.raises(UnicodeEncodeError):
+        s.write("/wec/t8", _payloads(1)[0], T0, T0)
+    assert list(s.dir.iterdir()) == []
+    assert s.current_file is None

@@ -188,6 +188,8 @@ def test_the_buffer_tells_of_every_request_and_alarm_and_takes_remote_ones_as_it
         (b'{"kind": "alarm", "alarm": "a", "path": "/etc"}', "unknown keys ['path']"),
         (b'{"kind": "alarm", "alarm": 7}', "alarm is not a string"),
         (b'{"kind": "request", "who": "' + b"w" * 5000 + b'"}', "bytes (at most 4096)"),
+        (b'{"kind": "request", "who": "a@b", "note": "\\ud800"}', "note holds a lone UTF-16"),
+        (b'{"kind": "alarm", "alarm": "a\\u001b[2J"}', "alarm holds a control character"),
     ],
 )
 def test_a_trigger_that_is_not_one_is_refused_saying_why(raw: bytes, why: str):

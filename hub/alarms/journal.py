@@ -62,7 +62,13 @@ class Journal:
     def append(self, record: dict[str, Any], sync: bool = False) -> bool:
         """Add a line; `sync`: fsync before returning (operator actions). False when the disk
         refused it (counted in `write_errors`; alarms go on in memory)."""
-        line = json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n"
+        try:
+            line = json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n"
+        except (TypeError, ValueError) as err:  # never half a line: nothing is written
+            with self._lock:
+                self.write_errors += 1
+                self.last_error = f"a record that is not JSON: {err}"
+            return False
         with self._lock:
             if self._fh is None:
                 if not self._opened:

@@ -3,7 +3,8 @@ is a JSON request and whose reply is JSON.
 
 Request: ``{"action": "list" | "ack" | "shelve" | "unshelve" | "disable" | "enable",
 "names": [name or pattern, ...], "all": bool, "for_s": seconds (shelve), "note": text,
-"user": who, "host": from where}``. ``all`` with ``ack`` means every unacked alarm.
+"user": who, "host": from where}``. ``all`` with ``ack`` means every unacked alarm. Names,
+note, user and host follow the rule for requester text (`edge.requester_text`).
 Reply: ``{"ok": bool, "error": text, "results": [{"name", "done", "state" or "reason"}],
 "alarms": [every alarm's view]}``. Everything in a request is checked before anything is done.
 """
@@ -16,16 +17,27 @@ from typing import Any
 
 from edge.config.security import SecurityConfig
 from edge.keys import SiteKeys
+from edge.requester_text import text_problem
 from hub.alarms.states import UNACKED, State
 from hub.alarms.supervisor import Supervisor
 from hub.read_model import to_jsonable
-from hub.requests import BadRequest, Caller, RequestService, as_caller, parse_object, text
+from hub.requests import (
+    MAX_HOST_CHARS,
+    MAX_USER_CHARS,
+    BadRequest,
+    Caller,
+    RequestService,
+    as_caller,
+    parse_object,
+    text,
+)
 from hub.router import Router
 
 log = logging.getLogger("fleetdaq.alarms")
 
 ACTIONS = ("list", "ack", "shelve", "unshelve", "disable", "enable")
 MAX_SHELVE_S = 30 * 24 * 3600.0
+MAX_NAME_CHARS = 200
 
 
 def parse_request(raw: bytes) -> dict[str, Any]:
@@ -38,6 +50,11 @@ def parse_request(raw: bytes) -> dict[str, Any]:
         raise BadRequest("names must be a list of alarm names or patterns")
     if len(names) > 1000:
         raise BadRequest("at most 1000 names")
+    for i, name in enumerate(names):
+        # A name is echoed in replies and refusals: it follows the rule for requester text.
+        why = text_problem(name, MAX_NAME_CHARS)
+        if why is not None:
+            raise BadRequest(f"names[{i}] {why}")
     if not isinstance(req.get("all", False), bool):
         raise BadRequest("all must be true or false")
     for_s = req.get("for_s", 0.0)
@@ -53,8 +70,8 @@ def parse_request(raw: bytes) -> dict[str, Any]:
         "all": bool(req.get("all", False)),
         "for_s": float(for_s),
         "note": text(req, "note"),
-        "user": text(req, "user", 100, "unknown"),
-        "host": text(req, "host", 255, "unknown"),
+        "user": text(req, "user", MAX_USER_CHARS, "unknown"),
+        "host": text(req, "host", MAX_HOST_CHARS, "unknown"),
     }
 
 

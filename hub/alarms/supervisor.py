@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -21,10 +22,10 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from edge.cdr import encode
 from edge.config.site import SiteConfig
 from edge.keys import HUB
-from edge.messages import ALARM_STATE_TYPE, AlarmState
+from edge.messages import ALARM_STATE_TYPE
+from edge.requester_text import text_problem
 from edge.threads import NamedThread
 from edge.wire import batch_values
 from hub.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
@@ -32,11 +33,13 @@ from hub.alarms.definitions import AlarmDef, build_definitions
 from hub.alarms.journal import Journal
 from hub.alarms.kernels import batch_extremes, settle, warm_up
 from hub.alarms.states import IN_ALARM, AlarmStatus, Change, State
+from hub.alarms.told import Told, put_back, told
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
-from hub.notification import Notification, Notifier
+from hub.notification import Notifier
 from hub.read_model import AlarmView, HubView, NodeView, ReadModel
 from hub.recorder import Recorder
+from hub.requests import MAX_HOST_CHARS, MAX_NOTE_CHARS, MAX_USER_CHARS
 
 log = logging.getLogger("fleetdaq.alarms")
 
@@ -44,12 +47,6 @@ ALARMS_TOPIC = "/alarms"
 TICK_S = 0.5
 HEALTH_FRESH_NS = 10_000_000_000
 """Health older than this is not used for node alarms (node_down says the node is gone)."""
-_RAISED_LEVEL = {
-    "critical": logging.CRITICAL,
-    "major": logging.ERROR,
-    "minor": logging.WARNING,
-    "info": logging.INFO,
-}
 
 
 class Alarm:
@@ -369,56 +366,25 @@ class Supervisor:
         if change is not None:
             self._apply(a, change)
 
-    def _apply(self, a: Alarm, change: Change, sync: bool = False) -> None:
-        """Journal, record, raise, publish, notify one transition (lock held)."""
-        d, s = a.d, a.status
-        state = AlarmState(
-            time_ns=change.time_ns, name=d.name, kind=d.kind, node=d.node, stream=d.stream,
-            channel=d.channel, condition=d.condition, severity=d.severity,
-            state=change.state.value, active=s.active, transition=change.transition,
-            value=change.value, unit=d.unit, since_ns=s.since_ns, count=s.count,
-            user=change.user, host=change.host, note=change.note,
-            shelved_until_ns=s.shelved_until_ns,
-        )  # fmt: skip
-        self.journal.append(
-            {
-                "name": d.name,
-                "state": s.state.value,
-                "active": s.active,
-                "since_ns": s.since_ns,
-                "count": s.count,
-                "value": None if math.isnan(s.value) else s.value,
-                "shelved_until_ns": s.shelved_until_ns,
-                "transition": change.transition,
-                "time_ns": change.time_ns,
-                "user": change.user,
-                "host": change.host,
-                "note": change.note,
-            },
-            sync=sync,
-        )
+    def _apply(self, a: Alarm, change: Change) -> None:
+        """Journal, record, raise, publish, notify one transition the hub made (lock held)."""
+        self._tell(change, told(a.d, a.status, change), sync=False)
+
+    def _tell(self, change: Change, t: Told, sync: bool) -> bool:
+        """Write `t` everywhere, the journal first; False, with nothing else written, when
+        the journal refused it (a full disk) and `sync` (an operator's action, to be undone).
+        The hub's own transitions go on in memory then (the journal counts the failure)."""
+        journaled = self.journal.append(t.journal, sync=sync)
+        if sync and not journaled:
+            return False
         if change.transition in self.totals:
             self.totals[change.transition] += 1
         now = time.time_ns()
-        self.recorder.record(ALARMS_TOPIC, encode(state), change.time_ns, now, ALARM_STATE_TYPE)
-        value = "" if math.isnan(change.value) else f" (value {change.value:.6g} {d.unit})".rstrip()
-        who = f" by {change.user}@{change.host}" if change.user else ""
-        note = f": {change.note}" if change.note else ""
-        level = _RAISED_LEVEL[d.severity] if change.transition == "raised" else logging.INFO
-        self.bus.emit(
-            level,
-            "alarms",
-            f"alarm_{change.transition}",
-            f"{d.name} {change.transition}{who}{note} — {d.severity}, {d.condition}{value}; "
-            f"now {change.state.value}",
-            alarm=d.name,
-            severity=d.severity,
-            state=change.state.value,
-            transition=change.transition,
-            value=change.value,
-        )
+        self.recorder.record(ALARMS_TOPIC, t.record, change.time_ns, now, ALARM_STATE_TYPE)
+        self.bus.emit(t.level, "alarms", t.tag, t.message, **t.fields)
         if self.notifier is not None:
-            self.notifier.submit(Notification(state, d.description))
+            self.notifier.submit(t.notification)
+        return True
 
     def _publish(self) -> None:
         with self.lock:
@@ -438,9 +404,23 @@ class Supervisor:
         note: str = "",
         for_s: float = 0.0,
     ) -> list[tuple[str, bool, str]]:
-        """Apply an operator action to each named alarm: (name, done, new state or reason)."""
+        """Apply an operator action to each named alarm: (name, done, new state or reason).
+
+        Each is done whole or not at all: its state, the journal (fsynced), the `/alarms`
+        record, the event (events.log) and the notification, or none of them and the reason.
+        `user`, `host` and `note` follow the rule for requester text (`edge.requester_text`);
+        text that breaks it refuses the action for every name before anything changes.
+        """
         from hub.alarms.states import Refused
 
+        for what, value, limit in (
+            ("user", user, MAX_USER_CHARS),
+            ("host", host, MAX_HOST_CHARS),
+            ("note", note, MAX_NOTE_CHARS),
+        ):
+            problem = text_problem(value, limit)
+            if problem is not None:
+                return [(name, False, f"{what} {problem}") for name in names]
         out: list[tuple[str, bool, str]] = []
         now = time.time_ns()
         with self.lock:
@@ -450,6 +430,7 @@ class Supervisor:
                     out.append((name, False, "no alarm of that name"))
                     continue
                 s = a.status
+                before = dataclasses.replace(s)
                 try:
                     if action == "ack":
                         change = s.ack(now, user, host, note)
@@ -466,7 +447,18 @@ class Supervisor:
                 except Refused as why:
                     out.append((name, False, str(why)))
                     continue
-                self._apply(a, change, sync=True)
+                try:
+                    t = told(a.d, s, change)
+                except Exception as err:  # nothing was written: the action is undone
+                    put_back(s, before)
+                    log.exception("alarm %s: %s cannot be recorded", name, action)
+                    out.append((name, False, f"it cannot be recorded ({err}); nothing changed"))
+                    continue
+                if not self._tell(change, t, sync=True):
+                    put_back(s, before)
+                    journal = f"the alarm journal cannot be written ({self.journal.last_error})"
+                    out.append((name, False, f"{journal}; nothing changed"))
+                    continue
                 out.append((name, True, s.state.value))
         self._publish()
         return out
