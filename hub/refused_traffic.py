@@ -10,6 +10,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import TypeVar
 
 from edge.requester_text import text_problem
@@ -50,9 +51,17 @@ def _shown(text: str, limit: int = 200) -> str:
 class RefusedTraffic:
     """Counts what the router refused; fed by `hub.router_log.RouterLogTap` on its thread."""
 
-    def __init__(self, bus: EventBus, model: ReadModel, hub: str = "hub") -> None:
-        """`hub`: how events name this hub's router (``hub``, or ``partition hub P``)."""
+    def __init__(
+        self,
+        bus: EventBus,
+        model: ReadModel,
+        hub: str = "hub",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """`hub`: how events name this hub's router (``hub``, or ``partition hub P``); `clock`:
+        monotonic seconds, for the once-a-minute events."""
         self.bus = bus
+        self.clock = clock
         self.model = model
         self.hub = hub
         self.acl: dict[tuple[str, str], int] = {}
@@ -90,7 +99,7 @@ class RefusedTraffic:
     def _count_acl(self, address: str, cn: str, what: str, key: str) -> None:
         """`what` refused on `key`; `key` "" for a peer whose certificate matches no subject of
         the list (all it sends is dropped, counted once per connection)."""
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             self.acl_total += 1
             slot = (peer_host(address), cn)
@@ -123,7 +132,7 @@ class RefusedTraffic:
         )
 
     def _count_tls(self, reason: str) -> None:
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             self.tls_total += 1
             slot = reason if reason in self.tls or len(self.tls) < _MAX_SLOTS else OTHER_REASONS

@@ -57,15 +57,33 @@ ACL_ENABLED = "Access control is enabled"
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _LINE = re.compile(
-    r"^\S+\s+(?P<level>TRACE|DEBUG|INFO|WARN|ERROR)\s.*?\s(?P<target>[\w:]+): (?P<msg>.*)$"
+    r"^\S+\s+(?P<level>TRACE|DEBUG|INFO|WARN|ERROR)\s.*?ThreadId\((?P<thread>\d+)\)"
+    r".*? (?P<target>zenoh[\w:]*): (?P<msg>.*)$"
 )
 _ACL_TARGET = "zenoh::net::routing::interceptor::access_control"
 _ACCEPT_TARGET = "zenoh_transport::unicast::establishment::accept"
 _TLS_TARGET = "zenoh_link_tls::unicast"
 _DENIED = re.compile(
     r"^(?:Using cached result: (?P<czid>[0-9a-f]+)|(?P<zid>[0-9a-f]+) on (?P<subject>\S+))"
-    r" is unauthorized to (?P<what>.+?) on (?:Some\((?P<some>.+)\)|(?P<key>.+))$"
+    r" is unauthorized to (?P<what>.+?) \((?P<flow>ingress|egress)\)"
+    r" on (?:Some\((?P<some>.+)\)|(?P<key>.+))$"
 )
+_CACHING = re.compile(
+    r"^ACL \((?P<flow>ingress|egress)\): caching permissions for `(?P<key>.*)` \.\.\.$"
+)
+CACHED_ACTIONS = (
+    "Query",
+    "Reply",
+    "Put",
+    "Delete",
+    "Declare/Undeclare Subscriber",
+    "Declare/Undeclare Queryable",
+    "Declare/Undeclare Liveliness Token",
+    "Liveliness Query",
+    "Declare Liveliness Subscriber",
+)
+"""What the ACL decides, in this order, when it caches its decisions for a key (its
+``compute_keyexpr_cache``): lines that are no message of anyone's."""
 _NO_SUBJECT = re.compile(r"^(?P<zid>[0-9a-f]+) did not match any configured ACL subject\.")
 _ACCEPTED = re.compile(
     r"^New transport link accepted from (?P<zid>[0-9a-f]+) to [0-9a-f]+: .*?"
@@ -132,28 +150,58 @@ class RefusalSink(Protocol):
         """After each read that held findings."""
 
 
-def parse_line(line: str) -> RouterLine | None:
-    """What one line of the router's log tells about refused traffic (None: nothing)."""
-    m = _LINE.match(_ANSI.sub("", line).rstrip("\r\n"))
-    if m is None:
+class RouterLogReader:
+    """Turns the router's log, line by line, into what it tells about refused traffic.
+
+    Stateful for one reason: when the ACL first meets a key it decides every kind of message
+    on it at once (`CACHED_ACTIONS`), writing an "is unauthorized" line for each kind it
+    denies although no such message came; those lines follow its "caching permissions" line
+    on the same thread and are skipped here."""
+
+    def __init__(self) -> None:
+        self._caching: dict[str, tuple[str, str, int]] = {}  # thread -> flow, key, next action
+
+    def read(self, line: str) -> RouterLine | None:
+        """What `line` tells (None: nothing)."""
+        m = _LINE.match(_ANSI.sub("", line).rstrip("\r\n"))
+        if m is None:
+            return None
+        target, msg, thread = m["target"], m["msg"], m["thread"]
+        if target == _ACL_TARGET:
+            return self._acl(thread, msg)
+        if target == _ACCEPT_TARGET:
+            if a := _ACCEPTED.match(msg):
+                return PeerAccepted(a["zid"], a["address"])
+        elif target == _TLS_TARGET:
+            if m["level"] == "WARN" and (t := _TLS_REFUSED.match(msg)):
+                return TlsRefusal(t["reason"])
+            if c := _TLS_ACCEPTED.match(msg):
+                return TlsAccepted(c["address"], c["cn"])
         return None
-    target, msg = m["target"], m["msg"]
-    if target == _ACL_TARGET:
-        if d := _DENIED.match(msg):
-            cn = _CN.search(d["subject"] or "")
-            key = d["key"] if d["key"] is not None else d["some"]
-            return AclDenial(d["czid"] or d["zid"], cn["cn"] if cn else "", d["what"], key)
-        if u := _NO_SUBJECT.match(msg):
-            return UnknownSubject(u["zid"])
-    elif target == _ACCEPT_TARGET:
-        if a := _ACCEPTED.match(msg):
-            return PeerAccepted(a["zid"], a["address"])
-    elif target == _TLS_TARGET:
-        if m["level"] == "WARN" and (t := _TLS_REFUSED.match(msg)):
-            return TlsRefusal(t["reason"])
-        if c := _TLS_ACCEPTED.match(msg):
-            return TlsAccepted(c["address"], c["cn"])
-    return None
+
+    def _acl(self, thread: str, msg: str) -> RouterLine | None:
+        caching = self._caching.pop(thread, None)
+        if c := _CACHING.match(msg):
+            self._caching[thread] = (c["flow"], c["key"], 0)
+            return None
+        d = _DENIED.match(msg)
+        if d is None:
+            if u := _NO_SUBJECT.match(msg):
+                return UnknownSubject(u["zid"])
+            return None
+        key = d["key"] if d["key"] is not None else d["some"]
+        if caching is not None and d["czid"] is None:
+            flow, cached_key, at = caching
+            try:
+                action = CACHED_ACTIONS.index(d["what"], at)
+            except ValueError:
+                action = -1
+            if action >= 0 and (d["flow"], key) == (flow, cached_key):
+                self._caching[thread] = (flow, cached_key, action)
+                return None
+        cn = _CN.search(d["subject"] or "")
+        what = f"{d['what']} ({d['flow']})"
+        return AclDenial(d["czid"] or d["zid"], cn["cn"] if cn else "", what, key)
 
 
 class RouterLogError(Exception):
@@ -169,6 +217,7 @@ class RouterLogTap:
 
     def __init__(self, sink: RefusalSink) -> None:
         self.sink = sink
+        self._reader = RouterLogReader()
         self._found = False
         self._saved: int | None = None
         self._read: int | None = None
@@ -251,7 +300,7 @@ class RouterLogTap:
             return self._verbose
         found = None
         try:
-            found = parse_line(line)
+            found = self._reader.read(line)
             if found is not None:
                 self._found = True
                 self.sink.refused(found)
