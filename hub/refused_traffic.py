@@ -144,8 +144,8 @@ class RefusedTraffic:
                 "hub",
                 "tls_refused",
                 f"the {self.hub}'s router refused a TLS handshake: {_shown(reason)} (a client "
-                f"without a certificate of this site's CA; zenoh does not name the peer) "
-                f"({n} so far; once a minute at most)",
+                "with a pair from another CA, without one, or not speaking TLS; zenoh does not "
+                f"name the peer) ({n} so far; once a minute at most)",
                 reason=slot,
                 count=n,
             )
