@@ -306,7 +306,8 @@ class RouterLogTap:
                 self.sink.refused(found)
         except Exception as err:  # one line never stops the tap
             _complain(err)
-        return self._verbose or (found is None and b" TRACE " not in raw)
+        # what the hub turned on for itself stays out of its stdout, but for a problem
+        return self._verbose or (found is None and (b" WARN " in raw or b" ERROR " in raw))
 
 
 class _ProcessLog:

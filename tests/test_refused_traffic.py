@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from rosbags.highlevel import AnyReader
 
 from edge.keys import SiteKeys
 from edge.security import TlsFiles
@@ -158,6 +159,20 @@ def test_a_certificate_the_acl_does_not_list_is_refused_everything_and_counted(s
     assert f"refuses everything from {address} (certificate operator:eve)" in raised
 
 
+def test_an_operator_asking_in_another_operators_name_is_counted_under_its_own(site: WebSite):
+    bob = site.session(site.tls("operators", "bob"))
+    try:
+        body = json.dumps({"action": "stop", "reason": "as ann"}).encode()
+        key = f"{site.keys.hub('recorder')}/by/ann"
+        assert [r for r in bob.get(key, payload=body, timeout=2) if r.ok] == []
+    finally:
+        bob.close()
+    wait_until(lambda: acl_count(site.hub_view(), "operator:bob") >= 1, 20, "bob counted")
+    (raised,) = [e for e in events(site, "acl_refused") if "(certificate operator:bob)" in e]
+    assert f"refused Query (ingress) on {key} from 127.0.0.1:" in raised
+    assert site.hub_view()["recorder"]["state"] == "recording"
+
+
 def test_a_flood_of_refused_messages_is_counted_exactly_and_raised_once(site: WebSite):
     wec = site.session(site.tls("nodes", "wec"))
     try:
@@ -176,3 +191,19 @@ def test_a_flood_of_refused_messages_is_counted_exactly_and_raised_once(site: We
     assert site.hub_view()["recorder"]["state"] == "recording", "the hub serves on"
     assert site.procs[0].popen.poll() is None
     assert json.dumps(site.hub_view())  # answers in full
+
+
+def test_zz_the_hub_stops_cleanly_and_its_recording_holds_every_refusal_event(site: WebSite):
+    hub = site.procs[0]
+    assert hub.terminate() == 0
+    assert "stopped:" in hub.output()
+    with AnyReader(sorted(site.data.glob("*/*.mcap"))) as reader:
+        conns = [c for c in reader.connections if c.topic == "/events"]
+        recorded = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(conns)]
+    certificates = [_field(e, "certificate") for e in recorded if e.tag == "acl_refused"]
+    assert sorted(certificates) == ["operator:bob", "operator:eve", "shore", "wec"]
+    assert any(e.tag == "tls_refused" for e in recorded)
+
+
+def _field(event: Any, key: str) -> str | None:
+    return next((kv.value for kv in event.fields if kv.key == key), None)
