@@ -243,9 +243,9 @@ class RouterLogTap:
         """Raise `RouterLogError` unless the router's ACL line arrived within `timeout` s."""
         if not self._enabled.wait(timeout):
             raise RouterLogError(
-                f"the router's log did not say {ACL_ENABLED!r} (is RUST_LOG turning "
-                "zenoh::net::routing::interceptor::access_control off, or did this zenoh "
-                "change its lines?)"
+                f"the router's log did not say {ACL_ENABLED!r} within {timeout:g} s: this zenoh "
+                "writes other lines than hub/router_log.py reads, or something else in this "
+                "process set up zenoh's log first"
             )
 
     def stop(self) -> None:

@@ -13,10 +13,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from edge.config.load import parse_config
 from edge.messages import Event
+from fleetdaq.pki import init
 from hub.bus import EventBus
 from hub.read_model import ReadModel
 from hub.refused_traffic import OTHER_PEERS, RefusedTraffic
+from hub.router import Router
 from hub.router_log import (
     AclDenial,
     PeerAccepted,
@@ -26,6 +29,8 @@ from hub.router_log import (
     TlsRefusal,
     UnknownSubject,
 )
+from tests.procs import free_port
+from tests.test_security import SITE
 
 LOG = Path(__file__).parent / "data" / "router_log" / "zenoh-1.10.2.log"
 SHORE = "62e9397a4a85968a32f1fa9fa6613f3e"
@@ -170,3 +175,34 @@ def test_a_key_a_peer_chose_is_shown_escaped_in_the_event():
     assert "\u202e" not in events[0].message
     assert "\x1b" not in events[0].message
     assert "\\u202ebad\\x1b[2J" in events[0].message
+
+
+def test_a_second_router_in_one_process_says_its_refusals_go_uncounted(tmp_path: Path):
+    """One fd 1 and one Rust log per process: the first router reads it (its ACL line
+    arrives), the second says at start that it cannot, instead of counting 0."""
+    pki = tmp_path / "pki"
+    init(pki, "sec", ["127.0.0.1"])
+    site = parse_config(SITE.format(pki=pki, port=free_port()), "<test>")
+    buses = [EventBus(), EventBus()]
+    seen: list[list[Event]] = [[], []]
+    for bus, events in zip(buses, seen, strict=True):
+        bus.subscribe("test", events.append)
+        bus.start()
+    routers = [
+        Router(
+            [f"tls/127.0.0.1:{free_port()}"], site, refused=RefusedTraffic(bus, ReadModel("sec"))
+        )
+        for bus in buses
+    ]
+    try:
+        for router in routers:
+            router.start()
+    finally:
+        for router in reversed(routers):
+            router.stop()
+        for bus in buses:
+            bus.stop()
+    assert seen[0] == [], "the first router's log is read"
+    (uncounted,) = seen[1]
+    assert uncounted.tag == "refused_traffic_uncounted"
+    assert "another router in this process already reads the log" in uncounted.message
