@@ -47,11 +47,14 @@ from typing import Protocol
 
 import zenoh
 
+from hub.bus import worth_telling
+
 DIRECTIVES = (
     "zenoh::net::routing::interceptor::access_control=trace",
     "zenoh_transport::unicast::establishment::accept=debug",
     "zenoh_link_tls::unicast=debug",
 )
+_LONGEST_LINE = 1 << 20
 ACL_ENABLED = "Access control is enabled"
 """The line the ACL writes (DEBUG) while the router opens: proof that the log arrives."""
 
@@ -230,12 +233,22 @@ class RouterLogTap:
             if _PROCESS.taken:
                 raise RouterLogError("another router in this process already reads the log")
             _PROCESS.taken = True
-        _PROCESS.init_rust_log()
-        sys.stdout.flush()
-        self._saved = os.dup(1)
-        self._read, write = os.pipe()
-        os.dup2(write, 1)
-        os.close(write)
+        try:
+            _PROCESS.init_rust_log()
+            sys.stdout.flush()
+            saved = os.dup(1)
+            try:
+                self._read, write = os.pipe()
+                os.dup2(write, 1)
+                os.close(write)
+            except OSError:
+                os.close(saved)
+                raise
+        except BaseException:
+            with _PROCESS.lock:
+                _PROCESS.taken = False
+            raise
+        self._saved = saved
         self._thread = threading.Thread(target=self._pump, name="router-log", daemon=True)
         self._thread.start()
 
@@ -271,6 +284,9 @@ class RouterLogTap:
             while chunk := os.read(read, 65536):
                 lines = (rest + chunk).split(b"\n")
                 rest = lines.pop()
+                if len(rest) > _LONGEST_LINE:  # output that is no log line: pass it on as it is
+                    lines.append(rest)
+                    rest = b""
                 keep = [line for line in lines if self._take(line)]
                 if self._found:
                     self._found = False
@@ -317,6 +333,7 @@ class _ProcessLog:
         self.lock = threading.Lock()
         self.taken = False
         self.rust_log_on = False
+        self.complaints = 0
 
     def init_rust_log(self) -> None:
         """Install zenoh's log subscriber with `DIRECTIVES` (once: Rust allows one)."""
@@ -342,7 +359,9 @@ _PROCESS = _ProcessLog()
 
 def _complain(err: Exception) -> None:
     # stderr: the bus may be what failed; a stopped tap would block the router's threads
-    _write_all(2, f"fleetdaq: the router's log tap: {err!r}\n".encode())
+    _PROCESS.complaints += 1
+    if worth_telling(n := _PROCESS.complaints):
+        _write_all(2, f"fleetdaq: the router's log tap ({n} so far): {err!r}\n".encode())
 
 
 def _write_all(fd: int, data: bytes) -> None:
