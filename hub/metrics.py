@@ -409,6 +409,22 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
         "Messages on keys the site file does not define.",
         value=view.refused_total,
     )
+    acl = CounterMetricFamily(
+        "fleetdaq_refused_acl",
+        "Messages the router's access control list dropped, by peer host and certificate.",
+        labels=["peer", "certificate"],
+    )
+    for peer, certificate, count in view.refused_acl:
+        acl.add_metric([peer, certificate], count)
+    yield acl
+    tls = CounterMetricFamily(
+        "fleetdaq_refused_tls",
+        "TLS handshakes the router refused, by reason (zenoh does not name the peer).",
+        labels=["reason"],
+    )
+    for reason, count in view.refused_tls:
+        tls.add_metric([reason], count)
+    yield tls
     dropped = CounterMetricFamily(
         "fleetdaq_bus_dropped_events", "Events a slow subscriber missed.", labels=["subscriber"]
     )

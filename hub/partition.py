@@ -62,6 +62,7 @@ from hub.read_model import (
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
+from hub.refused_traffic import RefusedTraffic
 from hub.router import Router
 from hub.services import ServiceStack
 from hub.snapshots import SnapshotBuffer
@@ -197,8 +198,13 @@ class PartitionRuntime:
         self.model = ReadModel(site.site)
         self.bus = EventBus(node=partition_event_node(partition))
         self.refused = RefusedKeys(self.bus, self.model)
+        self.refused_traffic = RefusedTraffic(self.bus, self.model, f"partition hub {partition}")
         self.router = Router(
-            self.listen, site, connect=site.mesh_connect(partition), partition=partition
+            self.listen,
+            site,
+            connect=site.mesh_connect(partition),
+            partition=partition,
+            refused=self.refused_traffic,
         )
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(

@@ -135,6 +135,12 @@ class HubView:
     refused_keys: tuple[tuple[str, int], ...] = ()
     """Keys the site file does not define that traffic arrived on, with counts."""
     refused_total: int = 0
+    refused_acl: tuple[tuple[str, str, int], ...] = ()
+    """Messages the router's access control list dropped: (peer host, certificate, count)."""
+    refused_acl_total: int = 0
+    refused_tls: tuple[tuple[str, int], ...] = ()
+    """TLS handshakes the router refused: (reason, count)."""
+    refused_tls_total: int = 0
     malformed: tuple[tuple[str, int], ...] = ()
     """Health and event payloads refused per node (batches: per stream, in `streams`)."""
     bus: tuple[dict[str, Any], ...] = ()

@@ -13,6 +13,8 @@ from edge.security import SecretFileError, hub_tls
 from edge.zenoh_session import router_config
 from hub.acl import access_control
 from hub.errors import RouterError
+from hub.refused_traffic import RefusedTraffic
+from hub.router_log import RouterLogError, RouterLogTap
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -22,7 +24,8 @@ class Router:
 
     With the site's `security.tls`, the router speaks mutual TLS only, with the hub's
     certificate, and filters every message by the access control list made from the site file
-    (`hub.acl`)."""
+    (`hub.acl`); what the router refuses (ACL, TLS handshakes) goes to `refused`, read from the
+    router's log (`hub.router_log`)."""
 
     name = "router"
 
@@ -32,15 +35,18 @@ class Router:
         site: SiteConfig | None = None,
         connect: list[str] | None = None,
         partition: str | None = None,
+        refused: RefusedTraffic | None = None,
     ) -> None:
         """`connect`: the routers of the other hubs to mesh with (`SiteConfig.mesh_connect`);
         `partition`: the partition hub this router serves (its own certificate), or None for
-        the main hub."""
+        the main hub; `refused`: counts what the router refuses (with TLS on)."""
         self.listen = listen
         self.site = site
         self.connect = connect or []
         self.partition = partition
+        self.refused = refused
         self._session: Any = None
+        self._tap: RouterLogTap | None = None
 
     @property
     def session(self) -> Any:
@@ -56,15 +62,39 @@ class Router:
             except SecretFileError as err:
                 raise RouterError(f"security.tls is on, but {err}") from None
             acl = access_control(self.site)
+        if acl is not None and self.refused is not None:
+            self._tap_log(self.refused)
         try:
             self._session = zenoh.open(router_config(self.listen, tls, acl, self.connect))
         except zenoh.ZError as err:
+            self._untap()
             raise RouterError(f"cannot start the Zenoh router on {self.listen}: {err}") from err
+        if self._tap is not None and self.refused is not None:
+            try:
+                self._tap.wait_enabled()
+            except RouterLogError as err:
+                self.refused.unavailable(str(err))
+
+    def _tap_log(self, refused: RefusedTraffic) -> None:
+        tap = RouterLogTap(refused)
+        try:
+            tap.start()
+        except (RouterLogError, OSError) as err:
+            refused.unavailable(str(err))
+            return
+        self._tap = tap
+        refused.publish()
+
+    def _untap(self) -> None:
+        tap, self._tap = self._tap, None
+        if tap is not None:
+            tap.stop()
 
     def stop(self) -> None:
         session, self._session = self._session, None
         if session is not None:
             session.close()
+        self._untap()
 
     def failure(self) -> str | None:
         return None

@@ -51,6 +51,7 @@ from hub.read_model import HubView, ReadModel
 from hub.recorder import Recorder
 from hub.recorder_requests import RecorderRequests
 from hub.refused import RefusedKeys
+from hub.refused_traffic import RefusedTraffic
 from hub.router import Router
 from hub.rules import RuleEngine
 from hub.services import ServiceStack
@@ -103,7 +104,10 @@ class HubRuntime:
         self.refused = RefusedKeys(self.bus, self.model)
 
         self.feed = BatchFeed()
-        self.router = Router(self.listen, site, connect=site.mesh_connect(None))
+        self.refused_traffic = RefusedTraffic(self.bus, self.model)
+        self.router = Router(
+            self.listen, site, connect=site.mesh_connect(None), refused=self.refused_traffic
+        )
         self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
         self.recorder = Recorder(
             self.router, site, self.data_dir, self.bus, self.model, self.refused, self.feed
