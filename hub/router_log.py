@@ -38,6 +38,7 @@ Cost: the ACL's TRACE level also writes one line per *allowed* message the route
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
 import sys
@@ -239,6 +240,11 @@ class RouterLogTap:
             saved = os.dup(1)
             try:
                 self._read, write = os.pipe()
+                # Room for a burst of lines while this thread waits for the GIL: a full pipe
+                # would hold up the router's threads that write them (1 MiB, the default most
+                # a process may ask for; the kernel's 64 KiB if refused).
+                with contextlib.suppress(OSError, AttributeError):
+                    fcntl.fcntl(write, fcntl.F_SETPIPE_SZ, 1 << 20)
                 os.dup2(write, 1)
                 os.close(write)
             except OSError:
