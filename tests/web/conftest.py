@@ -25,13 +25,15 @@ from hub.live_plots import LivePlots
 from hub.read_model import ReadModel
 from hub.web.parts import HubParts
 from hub.web.service import WebService
-from hub.web.users import write_users
+from hub.web.users import Role, write_users
 from ptp.quality import UNSYNCED
 from tests.procs import wait_until
 
 CHEAP = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
 """Hashes that verify in about a millisecond: the parameters travel in the hash."""
-PASSWORDS = {"alice": "alice-password", "bob": "bob-password"}
+PASSWORDS = {"alice": "alice-password", "bob": "bob-password", "vera": "vera-password"}
+ROLES: dict[str, Role] = {"alice": "control", "bob": "control", "vera": "view"}
+"""vera may look, not act."""
 
 SITE = """\
 site: webtest
@@ -178,8 +180,10 @@ class Web:
         )
 
 
-def write_cheap_users(path: Path, passwords: dict[str, str]) -> None:
-    write_users(path, {u: CHEAP.hash(p) for u, p in passwords.items()})
+def write_cheap_users(
+    path: Path, passwords: dict[str, str], roles: dict[str, Role] | None = None
+) -> None:
+    write_users(path, {u: CHEAP.hash(p) for u, p in passwords.items()}, roles)
 
 
 @pytest.fixture
@@ -191,17 +195,19 @@ def make_web(tmp_path: Path) -> Iterator[Callable[..., Web]]:
         metrics: bool = True,
         tls: tuple[Path, Path] | None = None,
         http_redirect: bool = False,
+        live: str = "",
     ) -> Web:
         """`tls`: serve HTTPS with this certificate and key (`http_redirect`: and plain HTTP
-        sent on to it from any free port)."""
+        sent on to it from any free port); `live`: the live view's slots (YAML flow)."""
         users = tmp_path / "users"
-        write_cheap_users(users, PASSWORDS)
+        write_cheap_users(users, PASSWORDS, ROLES)
         text = SITE.format(
             users=users,
             open_view=str(open_view).lower(),
             metrics=str(metrics).lower(),
             tls=(f"\n    tls: {{cert_file: {tls[0]}, key_file: {tls[1]}}}" if tls else "")
-            + ('\n    http_redirect: "127.0.0.1:0"' if http_redirect else ""),
+            + ('\n    http_redirect: "127.0.0.1:0"' if http_redirect else "")
+            + (f"\n    live: {live}" if live else ""),
         )
         site = parse_config(text, "<t>")
         bus = EventBus()

@@ -53,8 +53,8 @@ def needs_a_namespace() -> None:
 def add_user(users: Path) -> None:
     """`fleetdaq users add USER` into the file `users`, as an operator would."""
     added = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
-         "--file", str(users)],
+        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--role", "control",
+         "--password-stdin", "--file", str(users)],
         input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
     )  # fmt: skip
     assert added.returncode == 0, added.stderr
