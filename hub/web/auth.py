@@ -22,7 +22,8 @@ from urllib.parse import urlsplit
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 
-from hub.web.users import UNSTATED_ROLE, Role, UsersFile
+from edge.config.security import Role
+from hub.web.users import UNSTATED_ROLE, UsersFile
 
 COOKIE = "fleetdaq_session"
 CSRF_HEADER = "X-CSRF-Token"
@@ -208,13 +209,13 @@ class Auth:
             if s.expires <= now:
                 del self._sessions[token]
                 return None
-        role = self.users.role_of(s.user)
-        if role is None or self.users.hash_of(s.user) != s.hashed:
+        user = self.users.user(s.user)
+        if user is None or user.hashed != s.hashed:
             with self._lock:
                 self._sessions.pop(token, None)
             return None
         with self._lock:
-            s.role = role
+            s.role = user.role
             s.expires = now + self.ttl_s
             self._sessions.move_to_end(token)
         return s

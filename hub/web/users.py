@@ -20,10 +20,11 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, get_args
+from typing import get_args
 
 from argon2 import PasswordHasher
 
+from edge.config.security import Role
 from edge.paths import state_dir
 from hub.errors import HubError
 
@@ -33,9 +34,8 @@ USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")
 """A user name: what the audit shows (ack by NAME@address), so nothing that needs quoting."""
 MAX_USERS_FILE_BYTES = 1 << 20
 
-Role = Literal["view", "control"]
-"""What a dashboard user may do: ``view`` looks, ``control`` also acts (ack, shelve, outputs,
-recorder) -- the roles of the operator certificates (``security.operators``)."""
+# A dashboard user's role is an operator certificate's (``security.operators``): ``view`` looks,
+# ``control`` also acts (ack, shelve, outputs, recorder).
 ROLES: tuple[Role, ...] = get_args(Role)
 _ROLE_OF: dict[str, Role] = {r: r for r in ROLES}
 UNSTATED_ROLE: Role = "control"
@@ -49,13 +49,9 @@ class User:
     hashed: str
     role: Role = UNSTATED_ROLE
 
-    @property
-    def may_act(self) -> bool:
-        return self.role == "control"
-
 
 class UsersFileError(HubError):
-    """The users file cannot be read or written, or a line in it is not ``name:hash``."""
+    """The users file cannot be read or written, or a line in it is not ``name:role:hash``."""
 
 
 def default_users_file() -> Path:
@@ -246,9 +242,12 @@ class UsersFile:
         user = self._refresh().get(name)
         return user.hashed if user is not None else None
 
+    def user(self, name: str) -> User | None:
+        """The user's line as the file says now (None: no such user)."""
+        return self._refresh().get(name)
+
     def role_of(self, name: str) -> Role | None:
-        """The user's role as the file says now (None: no such user)."""
-        user = self._refresh().get(name)
+        user = self.user(name)
         return user.role if user is not None else None
 
     def names(self) -> list[str]:

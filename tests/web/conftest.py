@@ -18,6 +18,7 @@ import pytest
 from argon2 import PasswordHasher
 
 from edge.config.load import parse_config
+from edge.config.security import Role
 from edge.wire import BatchEncoder, read_header
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -25,7 +26,7 @@ from hub.live_plots import LivePlots
 from hub.read_model import ReadModel
 from hub.web.parts import HubParts
 from hub.web.service import WebService
-from hub.web.users import Role, write_users
+from hub.web.users import write_users
 from ptp.quality import UNSYNCED
 from tests.procs import wait_until
 
