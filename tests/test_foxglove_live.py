@@ -23,6 +23,7 @@ from rosbags.highlevel import AnyReader
 
 from edge.config.load import load_config, parse_config
 from edge.config.site import demo_config_path
+from edge.errors import ConfigError
 from edge.wire import BatchEncoder, read_header
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -285,6 +286,39 @@ def test_the_address_it_prints_is_a_url_a_viewer_on_this_machine_can_open(listen
     site = parse_config(_site(1).replace('"127.0.0.1:1"', f'"{listen}"'), "<test>")
     service = FoxgloveLive(site, BatchFeed(), EventBus(), lambda: ReadModel("fox").snapshot())
     assert service.url == url  # not started: the configured port
+
+
+@pytest.mark.parametrize(
+    ("open_view", "enabled", "listen", "refused"),
+    [
+        (False, True, "0.0.0.0:8765", True),
+        (False, True, "[::]:8765", True),
+        (False, True, "10.0.0.5:8765", True),
+        (False, True, "127.0.0.1:8765", False),
+        (False, True, "127.0.0.2:8765", False),
+        (False, True, "[::1]:8765", False),
+        (False, False, "0.0.0.0:8765", False),  # off: nothing is served
+        (True, True, "0.0.0.0:8765", False),  # the view is open anyway
+    ],
+)
+def test_with_the_view_closed_the_foxglove_live_view_may_listen_on_this_machine_only(
+    open_view: bool, enabled: bool, listen: str, refused: bool
+) -> None:
+    text = _site(1).replace(
+        'foxglove: {enabled: true, listen: "127.0.0.1:1"}',
+        f"open_view: {str(open_view).lower()}, "
+        f'foxglove: {{enabled: {str(enabled).lower()}, listen: "{listen}"}}',
+    )
+    if not refused:
+        assert parse_config(text, "site.yaml").hub.dashboard.foxglove.listen == listen
+        return
+    with pytest.raises(ConfigError) as err:
+        parse_config(text, "site.yaml")
+    assert str(err.value) == (
+        f"site.yaml: hub.dashboard: foxglove.listen {listen} would show every stream to anyone "
+        "who reaches it while open_view is false (the Foxglove protocol has no login): listen "
+        "on 127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 hub), or open_view: true"
+    )
 
 
 def test_wss_with_the_site_cas_hub_pair_and_nothing_in_clear(tmp_path: Path):

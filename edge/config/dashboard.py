@@ -2,8 +2,9 @@
 Prometheus ``/metrics``, and the Foxglove live view.
 
 Users and their password hashes never live in the site file: `users_file` names a file of
-argon2 hashes (`fleetdaq users add NAME` writes it). Viewing may be open to anyone who can reach
-the address (`open_view`); every action (ack, shelve, outputs, rules, recorder) needs a login.
+argon2 hashes and roles (`fleetdaq users add NAME --role view|control` writes it). Viewing may
+be open to anyone who can reach the address (`open_view`); every action (ack, shelve, outputs,
+rules, recorder) needs a login with the ``control`` role.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Annotated
 
 from pydantic import AfterValidator, Field, model_validator
 
-from edge.schema import Float, Strict
+from edge.schema import Float, Int, Strict
 
 
 def check_listen(value: str) -> str:
@@ -65,6 +66,34 @@ class ServerTls(Strict):
     """Its private key (PEM, not encrypted); only its owner may read it (``chmod 600``)."""
 
 
+def is_loopback(listen: str) -> bool:
+    """Whether a `Listen` serves this machine only (127.0.0.0/8, ::1)."""
+    return ipaddress.ip_address(split_listen(listen)[0]).is_loopback
+
+
+class LiveSlots(Strict):
+    """How many live views (``/api/live``) the dashboard serves at once, and how they are
+    shared: a logged-in user always finds a slot free of anonymous viewers (`reserved`), and
+    one address cannot hold every anonymous slot (`per_address`)."""
+
+    max_clients: Annotated[Int, Field(ge=1, le=10_000)] = 64
+    """Live views at once, logged in or not."""
+    reserved: Annotated[Int, Field(ge=0)] = 16
+    """Of those, the slots only logged-in users may take: anonymous viewers (`open_view`) get
+    at most ``max_clients - reserved``."""
+    per_address: Annotated[Int, Field(ge=1)] = 8
+    """Anonymous live views from one client address at most. Behind a reverse proxy every
+    viewer has the proxy's address: raise it, or close the view (`open_view: false`)."""
+
+    @model_validator(mode="after")
+    def _fits(self) -> LiveSlots:
+        if self.reserved >= self.max_clients:
+            raise ValueError(
+                f"reserved ({self.reserved}) must be less than max_clients ({self.max_clients})"
+            )
+        return self
+
+
 class FoxgloveConfig(Strict):
     """Foxglove (or Lichtblick) connects here with "Foxglove WebSocket" and sees every stream,
     the events, the alarms and the nodes' health live."""
@@ -98,7 +127,22 @@ class DashboardConfig(Strict):
     """With `tls`: also listen for plain HTTP here (``0.0.0.0:8080``) and send every request on
     to the HTTPS address, path and query kept (307), so ``http://hub:8080`` typed from habit
     reaches the page. Nothing else is served on it."""
+    live: LiveSlots = LiveSlots()
+    """The live views' slots (see `LiveSlots`)."""
     foxglove: FoxgloveConfig = FoxgloveConfig()
+
+    @model_validator(mode="after")
+    def _foxglove_closed_with_the_view(self) -> DashboardConfig:
+        # The Foxglove WebSocket protocol has no login and foxglove-sdk offers no hook to ask
+        # for one: with the view closed, only this machine may reach it (an SSH tunnel).
+        fox = self.foxglove
+        if not self.open_view and fox.enabled and not is_loopback(fox.listen):
+            raise ValueError(
+                f"foxglove.listen {fox.listen} would show every stream to anyone who reaches "
+                "it while open_view is false (the Foxglove protocol has no login): listen on "
+                "127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 hub), or open_view: true"
+            )
+        return self
 
     @model_validator(mode="after")
     def _redirect(self) -> DashboardConfig:

@@ -4,16 +4,18 @@ Reading (open to anyone who reaches the address when `open_view`, else after a l
 ``GET /api/view`` (the whole read model), ``/api/outputs``, ``/api/streams``, ``/api/plot``,
 ``/api/events``; ``GET /metrics`` (Prometheus, never behind a login: a scraper has none).
 
-Acting (a login, this session's CSRF token in ``X-CSRF-Token``, an Origin that is this page's,
-a JSON body): ``POST /api/alarms`` (ack, shelve, unshelve), ``/api/outputs`` (set, pulse, arm,
-disarm), ``/api/recorder`` (start, stop, split, snapshot). Each goes to the same ``handle`` the
+Acting (a login with the ``control`` role, this session's CSRF token in ``X-CSRF-Token``, an
+Origin that is this page's, a JSON body; a ``view`` login is refused, 403):
+``POST /api/alarms`` (ack, shelve, unshelve), ``/api/outputs`` (set, pulse, arm, disarm),
+``/api/recorder`` (start, stop, split, snapshot). Each goes to the same ``handle`` the
 command line's request reaches, with ``user`` and ``host`` always replaced by the logged-in
 user and the client's address, so every action's audit names who did it. The handlers block
 (an edge being asked, the journal fsynced): they run on a worker pool, never on the loop.
 
 Bad input is answered 400 with one line saying what is wrong (401 without a login, 403 for a
-failed CSRF/Origin check, 404 for what does not exist, 413 for a body over 64 KiB, 429 after
-repeated failed logins) and counted; an unexpected error is logged and answered 500.
+failed CSRF/Origin check or a view-role action, 404 for what does not exist, 413 for a body
+over 64 KiB, 429 after repeated failed logins) and counted; an unexpected error is logged and
+answered 500.
 """
 
 from __future__ import annotations
@@ -145,6 +147,19 @@ class Api:
             raise fail(403, f"refused: missing or wrong {CSRF_HEADER} header (reload the page)")
         return s
 
+    def controller(self, request: web.Request) -> Session:
+        """`actor`, whose role may act: a ``view`` login is refused (403) with the reason."""
+        s = self.actor(request)
+        if not s.may_act:
+            log.warning("dashboard: %s (view role) refused an action from %s", s.user,
+                        client_address(request))  # fmt: skip
+            raise fail(
+                403,
+                f"refused: {s.user} has the view role; acting needs the control role "
+                f"(on the hub: fleetdaq users role {s.user} control)",
+            )
+        return s
+
     async def body(self, request: web.Request, allowed: tuple[str, ...]) -> dict[str, Any]:
         if request.content_type != "application/json":
             raise fail(415, "send the request as application/json")
@@ -175,6 +190,7 @@ class Api:
                 "ok": True,
                 "site": self.site,
                 "user": s.user if s else None,
+                "role": s.role if s else None,
                 "csrf": s.csrf if s else None,
                 "open_view": self.cfg.open_view,
                 "users_defined": bool(await self.blocking(self.auth.users.names)),
@@ -196,17 +212,19 @@ class Api:
         if result.retry_after_s > 0:
             raise fail(429, result.error, **{"Retry-After": str(math.ceil(result.retry_after_s))})
         if result.session is None:
-            self._audit_login(False, user, address)
+            self._audit_login(False, user if result.known_user else None, address)
             raise fail(401, result.error)
-        self._audit_login(True, user, address)
         s = result.session
-        resp = web.json_response({"ok": True, "user": s.user, "csrf": s.csrf})
+        self._audit_login(True, s.user, address)
+        resp = web.json_response({"ok": True, "user": s.user, "role": s.role, "csrf": s.csrf})
         resp.set_cookie(
             COOKIE, s.token, httponly=True, samesite="Strict", path="/", secure=request.secure
         )
         return resp
 
-    def _audit_login(self, ok: bool, user: str, address: str) -> None:
+    def _audit_login(self, ok: bool, user: str | None, address: str) -> None:
+        """`user` None: the name typed is nobody's, and is never recorded (it may be a password
+        typed into the wrong field); the client's address says where the try came from."""
         if ok:
             log.info("dashboard: %s logged in from %s", user, address)
             self.parts.bus.emit(
@@ -214,12 +232,14 @@ class Api:
                 f"{user} logged in to the dashboard from {address}", user=user, host=address,
             )  # fmt: skip
         elif self.auth.failures <= 100 or self.auth.failures % 100 == 0:
-            log.warning("dashboard: login refused for %r from %s", user, address)
+            who = repr(user) if user is not None else "an unknown user name"
+            named = {"user": user} if user is not None else {}
+            log.warning("dashboard: login refused for %s from %s", who, address)
             self.parts.bus.emit(
                 logging.WARNING, "dashboard", "login_failed",
-                f"dashboard login refused for {user!r} from {address} "
+                f"dashboard login refused for {who} from {address} "
                 f"({self.auth.failures} refused since the hub started)",
-                user=user, host=address,
+                host=address, **named,
             )  # fmt: skip
 
     async def logout(self, request: web.Request) -> web.Response:
@@ -307,7 +327,7 @@ class Api:
         allowed: tuple[str, ...],
         actions: tuple[str, ...],
     ) -> web.Response:
-        s = self.actor(request)
+        s = self.controller(request)
         req = await self.body(request, allowed)
         action = req.get("action")
         if action not in actions:

@@ -22,7 +22,8 @@ from urllib.parse import urlsplit
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 
-from hub.web.users import UsersFile
+from edge.config.security import Role
+from hub.web.users import UNSTATED_ROLE, UsersFile
 
 COOKIE = "fleetdaq_session"
 CSRF_HEADER = "X-CSRF-Token"
@@ -38,6 +39,12 @@ class Session:
     """The user's hash at login: a changed password (or a removed user) ends the session."""
     expires: float
     created: float
+    role: Role = UNSTATED_ROLE
+    """As the users file says at the session's last use: a new role counts at the next click."""
+
+    @property
+    def may_act(self) -> bool:
+        return self.role == "control"
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +53,9 @@ class LoginResult:
     error: str = ""
     retry_after_s: float = 0.0
     """More than 0: refused because of earlier failures, try again after this many seconds."""
+    known_user: bool = False
+    """The name typed is a user's: only then may it be recorded (an unknown one may be a
+    password typed into the wrong field)."""
 
 
 @dataclass(slots=True)
@@ -140,11 +150,12 @@ class Auth:
 
     def login(self, user: str, password: str, address: str) -> LoginResult:
         """Check a password (blocking: ~0.15 s of CPU; call it off the event loop)."""
+        hashed = self.users.hash_of(user) if len(user) <= 64 else None
+        known = hashed is not None
         wait = max(self.per_user.retry_after(user), self.per_address.retry_after(address))
         if wait > 0:
             self.rate_limited += 1
-            return LoginResult(None, "too many failed logins; try again later", wait)
-        hashed = self.users.hash_of(user) if len(user) <= 64 else None
+            return LoginResult(None, "too many failed logins; try again later", wait, known)
         ok = False
         if len(password) <= MAX_PASSWORD:
             try:
@@ -156,10 +167,10 @@ class Auth:
             self.failures += 1
             self.per_user.failed(user)
             self.per_address.failed(address)
-            return LoginResult(None, "wrong user name or password")
+            return LoginResult(None, "wrong user name or password", known_user=known)
         self.per_user.succeeded(user)
         self.logins += 1
-        return LoginResult(self._new_session(user, hashed))
+        return LoginResult(self._new_session(user, hashed), known_user=True)
 
     def _dummy_hash(self) -> str:
         if self._dummy is None:
@@ -175,6 +186,7 @@ class Auth:
             hashed=hashed,
             expires=now + self.ttl_s,
             created=now,
+            role=self.users.role_of(user) or UNSTATED_ROLE,
         )
         with self._lock:
             self._sessions[s.token] = s
@@ -197,11 +209,13 @@ class Auth:
             if s.expires <= now:
                 del self._sessions[token]
                 return None
-        if self.users.hash_of(s.user) != s.hashed:
+        user = self.users.user(s.user)
+        if user is None or user.hashed != s.hashed:
             with self._lock:
                 self._sessions.pop(token, None)
             return None
         with self._lock:
+            s.role = user.role
             s.expires = now + self.ttl_s
             self._sessions.move_to_end(token)
         return s

@@ -15,6 +15,11 @@ Server -> client (JSON text messages):
 Client -> server: ``{"type": "plots", "plots": [{"id", "stream", "channels", "width",
 "span_s"}, ...]}`` replaces that client's plots (at most 8).
 
+Slots (`hub.dashboard.live`): at most ``max_clients`` sockets; anonymous viewers (`open_view`)
+may hold all but ``reserved`` of them and at most ``per_address`` from one address, so a
+logged-in user always finds a slot. A socket refused is answered before the upgrade: 503 when
+the slots are taken, 429 when its address holds its share; each refusal is counted.
+
 Each client has a bounded outbox: one pending state, one pending frame per plot, at most 500
 pending events. A client slower than the hub's pace has its pending item replaced by the newer
 one (counted as dropped), so it always gets the latest and never grows the hub's memory. The
@@ -42,7 +47,7 @@ from edge.config.dashboard import DashboardConfig
 from hub.bus import worth_telling
 from hub.live_plots import PlotFollower
 from hub.web import frames, jsontext
-from hub.web.api import Api, fail
+from hub.web.api import Api, client_address, fail
 from hub.web.events import EventTail
 from hub.web.parts import HubParts
 from hub.web.stats import WebStats
@@ -53,7 +58,6 @@ STATE_PERIOD_S = 1.0
 MAX_PLOTS = 8
 MAX_CHANNELS = 16
 MAX_WIDTH = 4000
-MAX_CLIENTS = 64
 MAX_BAD_MESSAGES = 50
 PENDING_EVENTS = 500
 
@@ -85,6 +89,8 @@ class Client:
     stats: WebStats
     token: str = ""
     """The session it was opened with: with `open_view` off, the socket ends with it."""
+    address: str = ""
+    """The client's address (what the anonymous viewers' per-address share counts)."""
     ending: bool = False
     """Its sender closes the socket (4001: log in again) instead of sending more."""
     plots: dict[str, PlotRequest] = field(default_factory=dict)
@@ -255,16 +261,22 @@ class Live:
             self.api.same_origin(request)  # another site's page may not read the live view
         if self.closing:
             raise fail(503, "the hub is stopping")
-        if len(self.clients) >= MAX_CLIENTS:
-            raise fail(503, f"too many live clients (at most {MAX_CLIENTS})")
+        address = client_address(request)
+        self._admit(s is not None, address)
         # No per-message deflate: float32 noise hardly compresses and zlib costs the hub more
         # CPU than every other part of a frame (the link is a LAN, not a modem).
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=16 * 1024, compress=False)
-        await ws.prepare(request)
-        client = Client(ws, s.user if s else "", self.stats, s.token if s else "")
+        client = Client(ws, s.user if s else "", self.stats, s.token if s else "", address)
+        # Held from here, not after the upgrade: sockets upgrading at once all count.
         self.clients.add(client)
-        self.stats.ws_connections += 1
         self.stats.ws_clients = len(self.clients)
+        try:
+            await ws.prepare(request)
+        except BaseException:
+            self.clients.discard(client)
+            self.stats.ws_clients = len(self.clients)
+            raise
+        self.stats.ws_connections += 1
         sender = asyncio.create_task(self._send(client), name="dash-send")
         self._senders.add(sender)
         try:
@@ -292,6 +304,31 @@ class Live:
                 await sender
             self._senders.discard(sender)
         return ws
+
+    def _admit(self, logged_in: bool, address: str) -> None:
+        """Refuse a new live view that has no slot (see the module's doc), with the reason."""
+        slots = self.cfg.live
+        if len(self.clients) >= slots.max_clients:
+            self.stats.ws_refused += 1
+            raise fail(503, f"every live view is taken (at most {slots.max_clients})")
+        if logged_in:
+            return
+        anonymous = [c for c in self.clients if not c.user]
+        if len(anonymous) >= slots.max_clients - slots.reserved:
+            self.stats.ws_refused += 1
+            raise fail(
+                503,
+                f"every live view open without a login is taken "
+                f"({slots.max_clients - slots.reserved}); log in for one of the "
+                f"{slots.reserved} kept for logged-in users",
+            )
+        if sum(c.address == address for c in anonymous) >= slots.per_address:
+            self.stats.ws_refused += 1
+            raise fail(
+                429,
+                f"{address} has {slots.per_address} live views open without a login already "
+                "(the most one address may); close one, or log in",
+            )
 
     def _on_message(self, client: Client, data: str) -> None:
         try:

@@ -24,6 +24,9 @@ class WebStats:
     """Alarm, output and recorder actions passed on to the hub."""
     ws_clients: int = 0
     ws_connections: int = 0
+    ws_refused: int = 0
+    """Live views refused for want of a slot (every one taken, or the anonymous share of the
+    slots or of one address)."""
     ws_bad_messages: int = 0
     ws_dropped: int = 0
     """Messages replaced before a slow client took them (a newer state or frame went instead)."""

@@ -1,7 +1,12 @@
-"""The dashboard's users file: one ``name:argon2-hash`` line per user (``#`` comments and blank
-lines allowed), never in the site file. `fleetdaq users add NAME` writes it (mode 0600,
-atomically); the hub re-reads it whenever it changes, so adding or removing a user needs no
-restart, and removing one (or changing their password) ends their sessions.
+"""The dashboard's users file: one ``name:role:argon2-hash`` line per user (``#`` comments and
+blank lines allowed), never in the site file. The role is the operator certificates' own:
+``view`` (look) or ``control`` (also act). A ``name:argon2-hash`` line (a file written before
+roles existed) is ``control``: every user of such a file could act, and an upgrade must not
+quietly take the ack away from whoever is on call.
+
+`fleetdaq users add NAME` writes it (mode 0600, atomically); the hub re-reads it whenever it
+changes, so adding or removing a user, or changing a role, needs no restart, and removing one
+(or changing their password) ends their sessions.
 """
 
 from __future__ import annotations
@@ -12,10 +17,14 @@ import os
 import re
 import stat
 import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 from argon2 import PasswordHasher
 
+from edge.config.security import Role
 from edge.paths import state_dir
 from hub.errors import HubError
 
@@ -25,9 +34,24 @@ USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")
 """A user name: what the audit shows (ack by NAME@address), so nothing that needs quoting."""
 MAX_USERS_FILE_BYTES = 1 << 20
 
+# A dashboard user's role is an operator certificate's (``security.operators``): ``view`` looks,
+# ``control`` also acts (ack, shelve, outputs, recorder).
+ROLES: tuple[Role, ...] = get_args(Role)
+_ROLE_OF: dict[str, Role] = {r: r for r in ROLES}
+UNSTATED_ROLE: Role = "control"
+"""The role of a line without one (written before roles existed, when every user could act)."""
+
+
+@dataclass(frozen=True, slots=True)
+class User:
+    """One line of the users file."""
+
+    hashed: str
+    role: Role = UNSTATED_ROLE
+
 
 class UsersFileError(HubError):
-    """The users file cannot be read or written, or a line in it is not ``name:hash``."""
+    """The users file cannot be read or written, or a line in it is not ``name:role:hash``."""
 
 
 def default_users_file() -> Path:
@@ -43,28 +67,41 @@ def check_name(name: str) -> str:
     return name
 
 
-def parse_users(text: str, where: str = "users file") -> tuple[dict[str, str], list[str]]:
-    """(name -> hash, problems): lines that are not ``name:$argon2...`` are left out and named."""
-    users: dict[str, str] = {}
+def check_role(role: str) -> Role:
+    checked = _ROLE_OF.get(role)
+    if checked is None:
+        raise UsersFileError(f"{role!r} is not a role (view or control)")
+    return checked
+
+
+def parse_users(text: str, where: str = "users file") -> tuple[dict[str, User], list[str]]:
+    """(name -> user, problems): lines that are not ``name:role:$argon2...`` (or, without a
+    role, ``name:$argon2...``) are left out and named."""
+    users: dict[str, User] = {}
     problems: list[str] = []
     for number, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        name, sep, hashed = line.partition(":")
-        if not sep or not USER_NAME.match(name) or not hashed.startswith("$argon2"):
-            problems.append(f"{where}:{number}: not NAME:ARGON2-HASH; line ignored")
+        name, sep, rest = line.partition(":")
+        stated: str = UNSTATED_ROLE
+        hashed = rest
+        if not rest.startswith("$argon2"):
+            stated, _, hashed = rest.partition(":")
+        role = _ROLE_OF.get(stated)
+        if not sep or not USER_NAME.match(name) or role is None or not hashed.startswith("$argon2"):
+            problems.append(f"{where}:{number}: not NAME:ROLE:ARGON2-HASH; line ignored")
             continue
         if name in users:
             problems.append(f"{where}:{number}: {name} appears again; the later line counts")
-        users[name] = hashed
+        users[name] = User(hashed, role)
     return users, problems
 
 
-def read_users(path: Path) -> dict[str, str]:
-    """Every user in `path` ({} when there is no file). Raises UsersFileError for a file that
-    cannot be read or has a line that is not ``name:hash`` (the command line refuses to
-    rewrite what it cannot understand)."""
+def read_user_lines(path: Path) -> dict[str, User]:
+    """Every user in `path` with their role ({} when there is no file). Raises UsersFileError
+    for a file that cannot be read or has a line it cannot understand (the command line
+    refuses to rewrite what it cannot understand)."""
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -77,18 +114,36 @@ def read_users(path: Path) -> dict[str, str]:
     return users
 
 
-def write_users(path: Path, users: dict[str, str]) -> None:
-    """Replace `path` with `users`, atomically (a temporary file in the same folder, fsynced,
-    renamed over it), readable and writable by its owner only (0600)."""
+def read_users(path: Path) -> dict[str, str]:
+    """Every user's hash in `path` (see `read_user_lines`, which also gives the roles)."""
+    return {name: u.hashed for name, u in read_user_lines(path).items()}
+
+
+def write_users(
+    path: Path, users: Mapping[str, str], roles: Mapping[str, Role] | None = None
+) -> None:
+    """Replace `path` with `users` (name -> hash), atomically (a temporary file in the same
+    folder, fsynced, renamed over it), readable and writable by its owner only (0600). A user
+    not in `roles` keeps the role the file gave them, else gets `UNSTATED_ROLE`; every line
+    is written with its role."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    body = "".join(f"{check_name(n)}:{h}\n" for n, h in sorted(users.items()))
+    if roles is None or set(users) - set(roles):
+        try:
+            kept = {n: u.role for n, u in read_user_lines(path).items()}
+        except UsersFileError:
+            kept = {}  # replaced whole: nothing in it can be kept
+        roles = {**kept, **(roles or {})}
+    body = "".join(
+        f"{check_name(n)}:{roles.get(n, UNSTATED_ROLE)}:{h}\n" for n, h in sorted(users.items())
+    )
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             os.fchmod(fh.fileno(), 0o600)
             fh.write(
-                "# fleetdaq dashboard users: NAME:ARGON2-HASH (fleetdaq users add|remove|list)\n"
+                "# fleetdaq dashboard users: NAME:ROLE:ARGON2-HASH, ROLE view or control "
+                "(fleetdaq users add|remove|role|list)\n"
             )
             fh.write(body)
             fh.flush()
@@ -119,10 +174,10 @@ class UsersFile:
         self.path = path
         self._lock = threading.Lock()
         self._signature: tuple[int, int, int, int] | None = None
-        self._users: dict[str, str] = {}
+        self._users: dict[str, User] = {}
         self.reloads = 0
 
-    def _refresh(self) -> dict[str, str]:
+    def _refresh(self) -> dict[str, User]:
         try:
             st = self.path.stat()
             signature: tuple[int, int, int, int] | None = (
@@ -141,7 +196,7 @@ class UsersFile:
             self._users = self._load(signature is not None)
             return self._users
 
-    def _load(self, exists: bool) -> dict[str, str]:
+    def _load(self, exists: bool) -> dict[str, User]:
         if not exists:
             log.info("no dashboard users file at %s: nobody can log in", self.path)
             return {}
@@ -184,7 +239,16 @@ class UsersFile:
             )
 
     def hash_of(self, name: str) -> str | None:
+        user = self._refresh().get(name)
+        return user.hashed if user is not None else None
+
+    def user(self, name: str) -> User | None:
+        """The user's line as the file says now (None: no such user)."""
         return self._refresh().get(name)
+
+    def role_of(self, name: str) -> Role | None:
+        user = self.user(name)
+        return user.role if user is not None else None
 
     def names(self) -> list[str]:
         return sorted(self._refresh())

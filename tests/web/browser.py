@@ -275,6 +275,30 @@ def tour(args: dict[str, Any], out: Path, result: dict[str, Any]) -> None:
         result["split_disabled_after_logout"] = page.get_by_role(
             "button", name="Split", exact=True
         ).is_disabled()
+
+        # A view-role login: it sees everything; every action button stays disabled, and the
+        # page's own fetch of an action is refused.
+        login(page, args["viewer"], args["viewer_password"])
+        page.get_by_text(f"Logged in as {args['viewer']}").wait_for()
+        split = page.get_by_role("button", name="Split", exact=True)
+        csrf = page.evaluate(
+            "() => fetch('/api/session').then((r) => r.json()).then((s) => s.csrf)"
+        )
+        result["viewer"] = {
+            "view_only_shown": page.get_by_text("(view only)").is_visible(),
+            "split_disabled": split.is_disabled(),
+            "split_title": split.get_attribute("title"),
+            "action_buttons": page.evaluate(
+                "() => Array.from(document.querySelectorAll('button.needs-login'))"
+                ".map((b) => b.disabled)"
+            ),
+            "split_by_fetch": page_fetch(
+                page, "/api/recorder", {"action": "split"}, {"X-CSRF-Token": csrf}
+            ),
+        }
+        page.screenshot(path=str(out / "view-role.png"), full_page=True)
+        page.get_by_role("button", name="Log out").click()
+        page.get_by_role("button", name="Log in").wait_for()
         result["stats"] = page.evaluate("() => window.fleetdaq.stats.frames")
         result["console_errors_after"] = [
             m for m in console if not m.startswith("Failed to load resource: the server")

@@ -18,6 +18,7 @@ import pytest
 from argon2 import PasswordHasher
 
 from edge.config.load import parse_config
+from edge.config.security import Role
 from edge.wire import BatchEncoder, read_header
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
@@ -31,7 +32,9 @@ from tests.procs import wait_until
 
 CHEAP = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
 """Hashes that verify in about a millisecond: the parameters travel in the hash."""
-PASSWORDS = {"alice": "alice-password", "bob": "bob-password"}
+PASSWORDS = {"alice": "alice-password", "bob": "bob-password", "vera": "vera-password"}
+ROLES: dict[str, Role] = {"alice": "control", "bob": "control", "vera": "view"}
+"""vera may look, not act."""
 
 SITE = """\
 site: webtest
@@ -178,8 +181,10 @@ class Web:
         )
 
 
-def write_cheap_users(path: Path, passwords: dict[str, str]) -> None:
-    write_users(path, {u: CHEAP.hash(p) for u, p in passwords.items()})
+def write_cheap_users(
+    path: Path, passwords: dict[str, str], roles: dict[str, Role] | None = None
+) -> None:
+    write_users(path, {u: CHEAP.hash(p) for u, p in passwords.items()}, roles)
 
 
 @pytest.fixture
@@ -191,17 +196,19 @@ def make_web(tmp_path: Path) -> Iterator[Callable[..., Web]]:
         metrics: bool = True,
         tls: tuple[Path, Path] | None = None,
         http_redirect: bool = False,
+        live: str = "",
     ) -> Web:
         """`tls`: serve HTTPS with this certificate and key (`http_redirect`: and plain HTTP
-        sent on to it from any free port)."""
+        sent on to it from any free port); `live`: the live view's slots (YAML flow)."""
         users = tmp_path / "users"
-        write_cheap_users(users, PASSWORDS)
+        write_cheap_users(users, PASSWORDS, ROLES)
         text = SITE.format(
             users=users,
             open_view=str(open_view).lower(),
             metrics=str(metrics).lower(),
             tls=(f"\n    tls: {{cert_file: {tls[0]}, key_file: {tls[1]}}}" if tls else "")
-            + ('\n    http_redirect: "127.0.0.1:0"' if http_redirect else ""),
+            + ('\n    http_redirect: "127.0.0.1:0"' if http_redirect else "")
+            + (f"\n    live: {live}" if live else ""),
         )
         site = parse_config(text, "<t>")
         bus = EventBus()

@@ -11,9 +11,11 @@ import pytest
 
 from hub.web.auth import Auth, RateLimiter, csrf_ok, origin_problem
 from hub.web.users import (
+    User,
     UsersFile,
     UsersFileError,
     parse_users,
+    read_user_lines,
     read_users,
     write_users,
 )
@@ -164,16 +166,58 @@ def test_the_users_file_is_written_0600_and_read_back(tmp_path: Path):
 
 
 def test_a_users_file_line_that_is_not_name_and_hash_is_named_and_left_out(tmp_path: Path):
-    users, problems = parse_users("# comment\n\nalice:$argon2id$x\nbob plain\n:$argon2id$y\n", "f")
-    assert users == {"alice": "$argon2id$x"}
+    users, problems = parse_users(
+        "# comment\n\nalice:control:$argon2id$x\nbob plain\n:$argon2id$y\n"
+        "carol:admin:$argon2id$z\n",
+        "f",
+    )
+    assert users == {"alice": User("$argon2id$x", "control")}
     assert problems == [
-        "f:4: not NAME:ARGON2-HASH; line ignored",
-        "f:5: not NAME:ARGON2-HASH; line ignored",
+        "f:4: not NAME:ROLE:ARGON2-HASH; line ignored",
+        "f:5: not NAME:ROLE:ARGON2-HASH; line ignored",
+        "f:6: not NAME:ROLE:ARGON2-HASH; line ignored",
     ]
     path = tmp_path / "users"
     path.write_text("bob plain\n")
-    with pytest.raises(UsersFileError, match="users:1: not NAME:ARGON2-HASH"):
+    with pytest.raises(UsersFileError, match="users:1: not NAME:ROLE:ARGON2-HASH"):
         read_users(path)
+
+
+def test_a_line_without_a_role_from_before_roles_is_control_and_a_stated_role_counts():
+    users, problems = parse_users("alice:$argon2id$x\nbob:view:$argon2id$y\n", "f")
+    assert problems == []
+    assert users == {"alice": User("$argon2id$x", "control"), "bob": User("$argon2id$y", "view")}
+
+
+def test_rewriting_the_users_file_keeps_each_users_role_unless_told(tmp_path: Path):
+    path = tmp_path / "users"
+    write_users(path, {"alice": "$argon2id$a", "bob": "$argon2id$b"}, {"alice": "view"})
+    write_users(path, {"alice": "$argon2id$a2", "bob": "$argon2id$b", "demo": "$argon2id$d"})
+    assert read_user_lines(path) == {
+        "alice": User("$argon2id$a2", "view"),
+        "bob": User("$argon2id$b", "control"),
+        "demo": User("$argon2id$d", "control"),
+    }
+    assert "alice:view:$argon2id$a2\n" in path.read_text(), "every line says its role"
+
+
+def test_a_sessions_role_follows_the_users_file_at_its_next_use(tmp_path: Path, clock: Clock):
+    path = tmp_path / "users"
+    write_cheap_users(path, {"vera": "vera-password"}, {"vera": "view"})
+    auth = Auth(UsersFile(path), session_ttl_s=600, clock=clock)
+    s = auth.login("vera", "vera-password", "10.0.0.5").session
+    assert s is not None
+    assert (s.role, s.may_act) == ("view", False)
+    write_users(path, read_users(path), {"vera": "control"})
+    again = auth.session(s.token)
+    assert again is not None, "a new role does not end the session"
+    assert (again.role, again.may_act) == ("control", True)
+
+
+def test_a_login_says_whether_the_name_typed_is_a_users(auth: Auth):
+    assert auth.login("alice", "nope", "10.0.0.5").known_user is True
+    assert auth.login("hunter2-typed-here", "x", "10.0.0.5").known_user is False
+    assert auth.login("alice", "correct horse", "10.0.0.5").known_user is True
 
 
 def test_the_hub_reads_the_users_file_again_when_it_changes(tmp_path: Path):

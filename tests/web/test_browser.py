@@ -29,6 +29,8 @@ OUTPUT = Path(__file__).resolve().parent / "output"
 NODES = ("wec", "am-cell", "shore")
 STREAMS = ("wec/t8", "am-cell/tc", "am-cell/robot", "shore/env")
 USER, PASSWORD = "night-shift", "a long night at sea"
+VIEWER, VIEWER_PASSWORD = "deck-watch", "only looking at the sea"
+"""A user with the view role: sees everything, can do nothing."""
 LOGIN_LINE = re.compile(r"dashboard: (\S+)\s+log in as (\S+) / (\S+)")
 
 
@@ -50,12 +52,14 @@ def needs_a_namespace() -> None:
     ensure_chromium()
 
 
-def add_user(users: Path) -> None:
-    """`fleetdaq users add USER` into the file `users`, as an operator would."""
+def add_user(
+    users: Path, user: str = USER, password: str = PASSWORD, role: str = "control"
+) -> None:
+    """`fleetdaq users add USER --role ROLE` into the file `users`, as an operator would."""
     added = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "users", "add", USER, "--password-stdin",
-         "--file", str(users)],
-        input=PASSWORD + "\n", capture_output=True, text=True, cwd=REPO, check=False,
+        [sys.executable, "-m", "fleetdaq", "users", "add", user, "--role", role,
+         "--password-stdin", "--file", str(users)],
+        input=password + "\n", capture_output=True, text=True, cwd=REPO, check=False,
     )  # fmt: skip
     assert added.returncode == 0, added.stderr
 
@@ -105,6 +109,7 @@ def tour(tmp_path_factory: pytest.TempPathFactory) -> Tour:
         demo, url, demo_password = start_demo_and_wait_for_login(ns, tmp, data)
         # A user added with the command line while the hub runs: the hub reads the file again.
         add_user(data / "dashboard-users")
+        add_user(data / "dashboard-users", VIEWER, VIEWER_PASSWORD, "view")
         result = run_browser(
             ns,
             tmp,
@@ -113,6 +118,7 @@ def tour(tmp_path_factory: pytest.TempPathFactory) -> Tour:
                 "url": url, "user": USER, "password": PASSWORD, "demo_user": "demo",
                 "demo_password": demo_password, "nodes": list(NODES), "streams": list(STREAMS),
                 "fast_stream": "wec/t8", "alarm": "substrate_hot",
+                "viewer": VIEWER, "viewer_password": VIEWER_PASSWORD,
             },
         )  # fmt: skip
         demo_exit = demo.terminate(60)
@@ -229,6 +235,17 @@ def test_a_split_from_the_page_closes_the_file_and_starts_a_new_one(tour: Tour):
     events = (tour.data / "events.log").read_text()
     assert re.search(rf"{re.escape(closed)} closed on request by {USER}@127\.0\.0\.1", events)
     assert r["split_disabled_after_logout"] is True
+
+
+def test_a_view_role_login_sees_the_page_with_every_action_disabled(tour: Tour):
+    r = completed(tour)["viewer"]
+    assert r["view_only_shown"] is True
+    assert r["split_disabled"] is True
+    assert r["split_title"] == "your role is view: acting needs control"
+    assert len(r["action_buttons"]) >= 4, "the recorder's, the alarms', the outputs'"
+    assert all(r["action_buttons"]), "every action button disabled"
+    assert r["split_by_fetch"]["status"] == 403
+    assert "has the view role" in r["split_by_fetch"]["body"]["error"]
 
 
 def test_the_demo_prints_the_dashboard_address_and_login_and_its_summary_has_it(tour: Tour):

@@ -6,7 +6,7 @@
 (() => {
   const $ = (id) => document.getElementById(id);
   const S = {
-    site: "", user: null, csrf: null, openView: true, usersDefined: false,
+    site: "", user: null, role: null, csrf: null, openView: true, usersDefined: false,
     view: null, streams: {}, outputs: [], events: [], ws: null, retry: 500,
     plots: new Map(), nextPlot: 1, autoPlot: true,
   };
@@ -139,7 +139,7 @@
     });
     let data = {};
     try { data = await r.json(); } catch (e) { data = { ok: false, error: `HTTP ${r.status}` }; }
-    if (r.status === 401 && path !== "/api/login") { S.user = null; S.csrf = null; applySession(); }
+    if (r.status === 401 && path !== "/api/login") { S.user = null; S.role = null; S.csrf = null; applySession(); }
     return { status: r.status, data };
   }
 
@@ -161,10 +161,13 @@
     return data;
   }
 
+  // A view-role login looks; only control acts (the hub refuses anything else with 403).
+  const mayAct = () => Boolean(S.user) && S.role === "control";
+
   async function loadSession() {
     const r = await fetch("/api/session");
     const s = await r.json();
-    S.site = s.site; S.user = s.user; S.csrf = s.csrf; S.openView = s.open_view;
+    S.site = s.site; S.user = s.user; S.role = s.role; S.csrf = s.csrf; S.openView = s.open_view;
     S.usersDefined = s.users_defined;
     $("site-name").textContent = `· ${s.site}`;
     document.title = `fleetdaq · ${s.site}`;
@@ -176,6 +179,7 @@
     $("login-form").hidden = inUser;
     $("logged-in").hidden = !inUser;
     $("who").textContent = S.user || "";
+    $("view-only").hidden = !inUser || mayAct();
     const locked = !S.openView && !inUser;
     $("locked").hidden = !locked;
     $("main").hidden = locked;
@@ -183,8 +187,8 @@
       $("login-error").textContent = "no users yet: run `fleetdaq users add NAME` on the hub";
     }
     for (const b of document.querySelectorAll(".needs-login")) {
-      b.disabled = !inUser;
-      b.title = inUser ? "" : "log in to act";
+      b.disabled = !mayAct();
+      b.title = mayAct() ? "" : inUser ? "your role is view: acting needs control" : "log in to act";
     }
     if (S.view) render();
   }
@@ -196,7 +200,7 @@
     });
     $("login-password").value = "";
     if (data.ok) {
-      S.user = data.user; S.csrf = data.csrf;
+      S.user = data.user; S.role = data.role; S.csrf = data.csrf;
       $("login-error").textContent = "";
       applySession();
       reconnect();
@@ -206,7 +210,7 @@
   });
   $("logout").addEventListener("click", async () => {
     await post("/api/logout", {});
-    S.user = null; S.csrf = null;
+    S.user = null; S.role = null; S.csrf = null;
     applySession();
     reconnect();
   });
@@ -229,7 +233,7 @@
       if (S.ws !== ws) return;
       S.ws = null;
       if (ev.code === 4001) { // the session ended: show the login, connect again after it
-        S.user = null; S.csrf = null;
+        S.user = null; S.role = null; S.csrf = null;
         setConn("logged out", "warn");
         applySession();
         return;
@@ -364,9 +368,9 @@
       setText(c[4], a.since_ns ? `${clock(a.since_ns)} (${duration((v.time_ns - a.since_ns) / 1e9)} ago)` : "–");
       tr.classList.toggle("unacked", UNACKED.has(a.state));
       const [ack, shelve, unshelve] = c[5].querySelectorAll("button");
-      ack.disabled = !S.user || !UNACKED.has(a.state);
-      shelve.disabled = !S.user || a.state === "shelved" || a.state === "disabled";
-      unshelve.disabled = !S.user || a.state !== "shelved";
+      ack.disabled = !mayAct() || !UNACKED.has(a.state);
+      shelve.disabled = !mayAct() || a.state === "shelved" || a.state === "disabled";
+      unshelve.disabled = !mayAct() || a.state !== "shelved";
     });
   }
 
@@ -546,7 +550,7 @@
       setText(c[3], st ? (st.safe_state ? "safe state" : st.armed ? "armed" : "not armed") : "–", st && st.safe_state ? "warn" : "");
       const locks = [...(st ? st.interlocks : []), ...(o.interlock ? [`hub: ${o.interlock}`] : [])];
       setText(c[4], locks.join(", ") || "none", locks.length ? "warn" : "");
-      for (const btn of c[5].querySelectorAll("button")) btn.disabled = !S.user || !o.alive;
+      for (const btn of c[5].querySelectorAll("button")) btn.disabled = !mayAct() || !o.alive;
     });
   }
   function outputUnit(name) {
