@@ -247,3 +247,33 @@ def test_an_edge_whose_spool_cannot_be_written_says_so_in_one_line(tmp_path: Pat
         _one_line(r)
         == f"fleetdaq: cannot write the spool at {spool / 'wec'}: Read-only file system"
     )
+
+
+PARTITIONED = """\
+site: locktest
+hub:
+  listen: [tcp/127.0.0.1:{main}]
+  partitions: {{bay2: {{listen: ['tcp/127.0.0.1:{bay2}'], nodes: ["cell-*"]}}}}
+nodes:
+  cell-a: {{streams: {{env: {{driver: environment_sim, rate_hz: 2, channels: [{{name: air}}]}}}}}}
+"""
+
+
+def test_a_second_partition_hub_on_the_same_folder_is_refused_naming_the_first(tmp_path: Path):
+    site, data = tmp_path / "site.yaml", tmp_path / "bay2"
+    site.write_text(PARTITIONED.format(main=free_port(), bay2=free_port()))
+    args = ["hub", "--config", str(site), "--partition", "bay2", "--data", str(data)]
+    first = Proc(args, tmp_path / "bay2.log")
+    try:
+        wait_until(
+            lambda: _active_files(data) or first.popen.poll() is not None, 60, "bay2 recording"
+        )
+        assert first.popen.poll() is None, first.output()[-3000:]
+        (active,) = _active_files(data)
+        line = _one_line(_fleetdaq(*args, "--listen", f"tcp/127.0.0.1:{free_port()}"))
+        assert line.startswith(f"fleetdaq: data folder {data} is in use by pid {first.popen.pid} ")
+        assert "(fleetdaq hub --partition bay2, since " in line
+        assert active.exists()
+        assert first.terminate() == 0, first.output()[-3000:]
+    finally:
+        first.kill()
