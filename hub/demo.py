@@ -19,11 +19,15 @@ from rich.live import Live
 from rich.table import Table
 
 from edge.config.site import SiteConfig
+from edge.writable import check_file
+from hub.data_lock import DataFolderLock
 from hub.errors import HubError, RouterError
 from hub.event_log import format_event
 from hub.layer_waits import LayerWaits
 from hub.read_model import HubView
 from hub.runtime import HubRuntime
+from hub.session import ACTIVE_SUFFIX
+from hub.verify import DAMAGED_SUFFIX
 from hub.web.users import UsersFileError, hash_password, read_users, write_users
 
 log = logging.getLogger("fleetdaq.demo")
@@ -214,6 +218,18 @@ def with_dashboard(
     return site.model_copy(update={"hub": hub})
 
 
+def files_on_disk(folder: Path) -> tuple[int, str]:
+    """How many recording files `folder` holds, counted on disk, and what they are
+    (``4 closed, 1 being written, 1 .damaged``)."""
+    kinds = {
+        "closed": len(list(folder.glob("*.mcap"))),
+        "being written": len(list(folder.glob("*.mcap" + ACTIVE_SUFFIX))),
+        ".damaged": len(list(folder.glob("*.mcap" + DAMAGED_SUFFIX))),
+    }
+    what = ", ".join(f"{n} {kind}" for kind, n in kinds.items() if n)
+    return sum(kinds.values()), what
+
+
 def run_demo(
     site: SiteConfig,
     config: Path,
@@ -226,15 +242,39 @@ def run_demo(
 ) -> tuple[int, dict[str, Any]]:
     """Run until `duration` elapses or `stop` is set; return (exit code, summary).
 
-    `dashboard`, `foxglove`: ADDRESS:PORT instead of the site file's, or "off"."""
+    `dashboard`, `foxglove`: ADDRESS:PORT instead of the site file's, or "off".
+
+    Raises:
+        DataFolderInUse: another hub or demo holds `data_dir` (before anything is written).
+        UnwritablePlace: the data folder, the users file or events.log cannot be written.
+    """
+    # First of all: a second demo on the same folder must not touch the first one's files
+    # (its users file, its recording) nor its ports.
+    with DataFolderLock(data_dir, "fleetdaq demo") as lock:
+        return _run_demo(site, config, data_dir, duration, stop, listen, dashboard, foxglove, lock)
+
+
+def _run_demo(
+    site: SiteConfig,
+    config: Path,
+    data_dir: Path,
+    duration: float | None,
+    stop: threading.Event,
+    listen: str | None,
+    dashboard: str | None,
+    foxglove: str | None,
+    lock: DataFolderLock,
+) -> tuple[int, dict[str, Any]]:
     console = Console(stderr=True)
     if not console.is_terminal:
         console = Console(stderr=True, width=120)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     users_file = data_dir / "dashboard-users"
     site = with_dashboard(site, users_file, dashboard, foxglove)
+    if site.hub.dashboard.enabled:
+        check_file(users_file, "the dashboard users file")
     password = demo_login(users_file) if site.hub.dashboard.enabled else ""
-    h = HubRuntime(site, data_dir, [listen] if listen else None, live_plots=True)
+    h = HubRuntime(site, data_dir, [listen] if listen else None, live_plots=True, lock=lock)
     try:
         h.start()
     except RouterError as err:
@@ -307,9 +347,14 @@ def run_demo(
         summary["layer_waits"] = layers.summary()
         summary["rules"] = h.snapshot().rules
     console.print(status_view(h.snapshot(), site, summary["duration_s"], layers.lines()))
+    last = Path(summary["session"])
+    count, what = files_on_disk(last)
+    summary["files_on_disk"] = count
     console.print(
-        f"recorded into {session.dir} ({len(summary['files'])} file(s)); "
-        f"edge logs in {session.dir / 'logs'}"
+        f"recorded into {last} ({count} file(s){': ' + what if count else ''}); "
+        f"edge logs in {session.dir / 'logs'}",
+        highlight=False,
+        soft_wrap=True,
     )
     if failed_services:
         for name, why in failed_services:

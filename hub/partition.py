@@ -47,6 +47,7 @@ from edge.paths import default_data_dir
 from edge.systemd import Systemd
 from hub.bus import EventBus
 from hub.certificates import CertificateWatch
+from hub.data_lock import DataFolderClaim, DataFolderLock, Place
 from hub.event_log import EventLog
 from hub.hub_health import HubHealth
 from hub.node_watch import NodeWatch
@@ -194,6 +195,7 @@ class PartitionRuntime:
         self.partition = partition
         self.listen = listen or list(site.hub.partitions[partition].listen)
         self.data_dir = partition_data_dir(site, partition, data_dir)
+        self.lock = DataFolderLock(self.data_dir, f"fleetdaq hub --partition {partition}")
         self.keys = SiteKeys(site.site)
         self.model = ReadModel(site.site)
         self.bus = EventBus(node=partition_event_node(partition))
@@ -271,6 +273,8 @@ class PartitionRuntime:
         )
         self.services = ServiceStack(
             [
+                # Before any port or file: one hub per data folder.
+                DataFolderClaim(self.lock, [Place(self.event_log.path, "events.log")]),
                 self.router,
                 _BusService(self.bus),
                 self.event_log,

@@ -177,6 +177,7 @@ class Recorder:
 
     def _recover_crashed_files(self) -> None:
         """Turn ``*.mcap.active`` files left by a crash into valid files, with an event each."""
+        from hub.data_lock import FileInUse
         from hub.verify import recover_file, refresh_metadata
 
         assert self.session is not None
@@ -190,6 +191,9 @@ class Recorder:
                 continue
             try:
                 report = recover_file(f)
+            except FileInUse as err:  # a `fleetdaq verify --recover` on it right now
+                self.bus.emit(logging.WARNING, "recorder", "recover_skipped", str(err))
+                continue
             except OSError as err:
                 self.bus.emit(
                     logging.ERROR, "recorder", "recover_failed", f"could not recover {f}: {err}"

@@ -35,6 +35,7 @@ from hub.batch_feed import BatchFeed
 from hub.bus import EventBus
 from hub.certificates import CertificateWatch
 from hub.commands import CommandService
+from hub.data_lock import DataFolderClaim, DataFolderLock, Place
 from hub.event_log import EventLog
 from hub.fleet_time import FleetTimeService
 from hub.foxglove.service import FoxgloveLive
@@ -91,13 +92,16 @@ class HubRuntime:
         data_dir: Path | None = None,
         listen: list[str] | None = None,
         live_plots: bool = False,
+        lock: DataFolderLock | None = None,
     ) -> None:
         """`live_plots`: keep the plots' buffers even without the dashboard (the demo's
-        layer-wait table reads them); with the dashboard on they are always kept."""
+        layer-wait table reads them); with the dashboard on they are always kept. `lock`: the
+        data folder's, already taken by the caller (the demo); else the hub takes it at start."""
         self.site = site
         self.listen = listen or list(site.hub.listen)
         configured = site.hub.data_dir
         self.data_dir = data_dir or (Path(configured) if configured else default_data_dir())
+        self.lock = lock or DataFolderLock(self.data_dir, "fleetdaq hub")
         self.keys = SiteKeys(site.site)
         self.model = ReadModel(site.site)
         self.bus = EventBus()
@@ -124,13 +128,14 @@ class HubRuntime:
         outbox = Path(notify.outbox_dir) if notify.outbox_dir else self.data_dir / "outbox"
         self.notifier = EmailNotifier(notify, site.site, outbox, self.bus, self.model)
         journal = site.hub.alarm_journal
+        self.supervisor_journal = Path(journal) if journal else self.data_dir / "alarms.journal"
         self.supervisor = Supervisor(
             site,
             self.bus,
             self.model,
             self.recorder,
             self.feed,
-            Path(journal) if journal else self.data_dir / "alarms.journal",
+            self.supervisor_journal,
             notifier=self.notifier,
             snapshot=self.snapshot,
         )
@@ -224,8 +229,13 @@ class HubRuntime:
             if watched:
                 self.supervisor.also_from(self.partition_live.supervised)
                 self.rules.also_from(self.partition_live.supervised)
+        places = [Place(self.event_log.path, "events.log")]
+        if notify.smtp is not None:
+            places.append(Place(outbox, "the e-mail outbox", folder=True))
+        places.append(Place(self.supervisor_journal, "the alarm journal"))
         self.services = ServiceStack(
             [
+                DataFolderClaim(self.lock, places, owned=lock is None),  # before any port or file
                 self.router,
                 _BusService(self.bus),
                 self.event_log,

@@ -27,6 +27,7 @@ from edge import __version__
 from edge.config.hub import RecorderConfig
 from edge.messages import SCHEMAS as MESSAGE_SCHEMAS
 from edge.wire import BATCH_SCHEMAS, SAMPLE_BATCH_TYPE
+from hub.data_lock import hold_file
 
 log = logging.getLogger("fleetdaq.recorder")
 
@@ -118,6 +119,7 @@ class _OpenFile:
         self.path = path
         self.active = path.with_name(path.name + ACTIVE_SUFFIX)
         self.fh: IO[bytes] = open(self.active, "xb")  # noqa: SIM115 - closed in finish()
+        hold_file(self.fh)  # `fleetdaq verify` sees it is being written, and leaves it alone
         self.writer = Writer(
             self.fh, chunk_size=cfg.chunk_size, compression=_COMPRESSION[cfg.compression]
         )
@@ -151,8 +153,10 @@ class _OpenFile:
         self.fh.flush()
         self.stats.bytes = self.fh.tell()
         os.fsync(self.fh.fileno())
-        self.fh.close()
+        # Renamed while still held: no instant in which a closed-looking .active file could be
+        # taken for one left by a crash (and recovered under the writer).
         os.replace(self.active, self.path)
+        self.fh.close()
 
 
 class RecordingSession:

@@ -10,6 +10,10 @@ CRC-checked. Recovery writes every intact schema, channel, metadata record, atta
 message into a new valid ``*.mcap`` and renames the damaged original ``*.mcap.damaged``. What
 could not be recovered is reported: the bytes after the last intact record and, when the cut
 is inside a chunk whose header survived, the log-time span of the messages it held.
+
+An ``*.mcap.active`` file that a live process holds (`hub.data_lock.file_writer`: the hub
+writing it now) is reported as being written, by whom, and never recovered. The
+``*.mcap.damaged`` originals that recoveries keep are listed, with what they still hold.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import Writer
 
+from hub.data_lock import FileInUse, file_writer, recovering
 from hub.session import ACTIVE_SUFFIX, FileStats, write_rosbag2_metadata
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -46,7 +51,8 @@ _PARSERS: dict[int, Any] = {
 class FileReport:
     path: Path
     status: str
-    """"ok", "unfinished" (an .active file), "recovered", "damaged"."""
+    """"ok", "unfinished" (an .active file), "recovered", "damaged", "being written" (an
+    .active file a live process holds), "damaged original" (a .damaged file a recovery kept)."""
     messages: int = 0
     start_ns: int | None = None
     end_ns: int | None = None
@@ -59,6 +65,8 @@ class FileReport:
     topic_types: dict[str, str] = field(default_factory=dict)
 
     def line(self) -> str:
+        if self.status == "being written":
+            return f"{self.path.name}: {self.problem}"
         span = ""
         if self.start_ns is not None and self.end_ns is not None:
             span = f", {(self.end_ns - self.start_ns) / 1e9:.1f} s"
@@ -209,8 +217,32 @@ def scan_active(path: Path) -> FileReport:
     return report
 
 
+def being_written(path: Path, writer: str) -> FileReport:
+    """A live ``.active`` file: not read (its last chunk is still in the writer's memory)."""
+    return FileReport(path, "being written", problem=f"being written by {writer}")
+
+
+def damaged_original(path: Path) -> FileReport:
+    """A ``.damaged`` file a recovery kept: what it still holds, and its recovered copy."""
+    report = scan_active(path)
+    report.status = "damaged original"
+    copy = path.with_name(path.name.removesuffix(DAMAGED_SUFFIX))
+    kept = f"recovered into {copy.name}" if copy.exists() else f"no {copy.name} beside it"
+    report.problem = f"{kept}; {report.problem}" if report.problem else kept
+    return report
+
+
 def recover_file(path: Path) -> FileReport:
-    """Rebuild a valid ``.mcap`` from an ``.active`` file; the original becomes ``.damaged``."""
+    """Rebuild a valid ``.mcap`` from an ``.active`` file; the original becomes ``.damaged``.
+
+    Raises:
+        FileInUse: a live process is writing the file (it is left untouched).
+    """
+    with recovering(path):
+        return _recover(path)
+
+
+def _recover(path: Path) -> FileReport:
     data = path.read_bytes()
     s = _salvage(data)
     target = path.with_name(path.name.removesuffix(ACTIVE_SUFFIX))
@@ -268,19 +300,37 @@ def verify_path(path: Path, recover: bool) -> list[FileReport]:
 
 
 def _mcap_files(folder: Path) -> list[Path]:
-    return sorted(folder.glob("*.mcap")) + sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX))
+    return (
+        sorted(folder.glob("*.mcap"))
+        + sorted(folder.glob("*.mcap" + ACTIVE_SUFFIX))
+        + sorted(folder.glob("*.mcap" + DAMAGED_SUFFIX))
+    )
 
 
 def _verify_files(files: list[Path], recover: bool, folder: Path | None) -> list[FileReport]:
     reports: list[FileReport] = []
     for f in files:
-        if f.name.endswith(ACTIVE_SUFFIX):
-            reports.append(recover_file(f) if recover else scan_active(f))
+        if f.name.endswith(DAMAGED_SUFFIX):
+            reports.append(damaged_original(f))
+        elif f.name.endswith(ACTIVE_SUFFIX):
+            reports.append(_unfinished(f, recover))
         else:
             reports.append(check_file(f))
     if recover and folder is not None and any(r.status == "recovered" for r in reports):
         refresh_metadata(folder)
     return reports
+
+
+def _unfinished(path: Path, recover: bool) -> FileReport:
+    writer = file_writer(path)
+    if writer is not None:
+        return being_written(path, writer)
+    if not recover:
+        return scan_active(path)
+    try:
+        return recover_file(path)
+    except FileInUse as err:  # a hub began writing or recovering it since the look above
+        return FileReport(path, "being written", problem=str(err))
 
 
 def refresh_metadata(folder: Path) -> None:

@@ -21,6 +21,7 @@ from edge.messages import Event, make_event
 from edge.wire import BatchEncoder, decode_u64, encode_u64
 from edge.zenoh_session import client_config
 from hub.bus import worth_telling
+from hub.data_lock import LOCK_FILE, DataFolderLock
 from hub.errors import RouterError
 from hub.runtime import HubRuntime
 from hub.services import ServiceStack
@@ -100,7 +101,10 @@ def test_a_hub_whose_port_is_taken_starts_nothing_and_leaves_nothing_running(tmp
         runtime = HubRuntime(site, tmp_path / "data")
         with pytest.raises(RouterError, match="cannot start the Zenoh router"):
             runtime.start()
-    assert not (tmp_path / "data").exists(), "nothing after the router was started"
+    # Only the data folder's lock, taken before the router (one hub per folder), and let go.
+    assert [p.name for p in (tmp_path / "data").iterdir()] == [LOCK_FILE], "nothing else"
+    with DataFolderLock(tmp_path / "data", "the next hub") as lock:
+        assert lock.held
     new = [t.name for t in set(threading.enumerate()) - threads if t.is_alive()]
     assert not [n for n in new if n.startswith(("bus-", "recorder", "heartbeat", "hub-health"))]
 

@@ -134,7 +134,11 @@ def test_verify_cli_finds_and_recovers_a_crashed_session(tmp_path: Path):
     assert "recovered" in r.stdout
     assert run(str(folder)).returncode == 0
     reports = verify_path(folder, recover=False)
-    assert {p.path.name for p in reports} == {f"{s.name}_0000.mcap", "late.mcap"}
+    assert {p.path.name: p.status for p in reports} == {
+        f"{s.name}_0000.mcap": "ok",
+        "late.mcap": "ok",
+        "late.mcap.damaged": "damaged original",  # listed, never silently ignored
+    }
     recovered = next(r for r in reports if r.path.name == "late.mcap")
     with AnyReader([folder]) as reader:  # metadata.yaml now lists the recovered file too
         assert sum(1 for _ in reader.messages()) == 25 + recovered.messages

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from fleetdaq.cli.common import finish, load_site, stop_on_signals
+from fleetdaq.cli.common import fail, finish, load_site, stop_on_signals
 
 
 @click.command()
@@ -60,7 +60,6 @@ def demo(
     site = load_site(path)
     if listen:
         from edge.schema import check_endpoint
-        from fleetdaq.cli.common import fail
 
         try:
             check_endpoint(listen)
@@ -69,19 +68,24 @@ def demo(
     for option, value in (("--dashboard", dashboard), ("--foxglove", foxglove)):
         if value and value != "off":
             from edge.config.dashboard import check_listen
-            from fleetdaq.cli.common import fail
 
             try:
                 check_listen(value)
             except ValueError as err:
                 fail(f"{option}: {err}")
+    from edge.writable import UnwritablePlace
+    from hub.data_lock import DataFolderInUse
     from hub.demo import run_demo
+    from hub.web.users import UsersFileError
 
     # The edges run in process groups of their own (a terminal's Ctrl-C or hangup reaches the
     # demo alone), so the demo stops them on either.
     stop = stop_on_signals(hangup=True)
     root = Path(data_dir) if data_dir else default_demo_dir()
-    code, summary = run_demo(site, path, root, duration, stop, listen, dashboard, foxglove)
+    try:
+        code, summary = run_demo(site, path, root, duration, stop, listen, dashboard, foxglove)
+    except (DataFolderInUse, UnwritablePlace, UsersFileError) as err:
+        fail(f"fleetdaq: {err}", 2)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
     finish(code)

@@ -63,12 +63,17 @@ def edge(
     setup_logging(verbose)
     from edge.agent import EdgeAgent
     from edge.errors import DriverError
+    from edge.writable import UnwritablePlace, check_folder
 
     try:
-        with EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None):
+        agent = EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None)
+        check_folder(agent.spool_dir, "the spool")
+        with agent:
             # Timed waits: a signal that lands on another thread is still seen within a second.
             while not stop.wait(1.0):
                 pass
+    except UnwritablePlace as err:
+        fail(f"fleetdaq: {err}")
     except DriverError as err:
         fail(f"{config}: nodes.{node}: {err}", 1)
     finish(0)

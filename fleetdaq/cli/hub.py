@@ -70,9 +70,12 @@ def hub(
                 fail(f"--listen: {err}")
     check_partition(site, config, partition)
     setup_logging(verbose)
+    from edge.writable import UnwritablePlace
+    from hub.data_lock import DataFolderInUse
     from hub.errors import HubError, RouterError, SecretError
     from hub.partition import PartitionRuntime
     from hub.runtime import HubRuntime
+    from hub.web.users import UsersFileError
 
     check_tls(config, site, "hub", partition)
     data = Path(data_dir) if data_dir else None
@@ -95,6 +98,8 @@ def hub(
                 ticks += 1
                 if ticks % 10 == 0:
                     log.info("%s", _progress_line(runtime.summary()))
+    except (DataFolderInUse, UnwritablePlace, UsersFileError) as err:
+        fail(f"fleetdaq: {err}", 2)
     except RouterError as err:
         fail(str(err), 1)
     except SecretError as err:

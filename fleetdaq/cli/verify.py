@@ -21,7 +21,10 @@ def verify(path: Path, recover: bool, as_json: bool) -> None:
     """Check an MCAP file, a session folder, or a data root holding session folders: schemas,
     chunk CRCs, summary.
 
-    Exit 0 when every file is sound (or was recovered), 1 otherwise.
+    A *.mcap.active file that a running hub holds is reported as being written (by whom) and
+    never recovered; the *.mcap.damaged originals that recoveries keep are listed.
+
+    Exit 0 when every file is sound, recovered or being written, 1 otherwise.
     """
     from hub.verify import verify_path
 
@@ -34,7 +37,19 @@ def verify(path: Path, recover: bool, as_json: bool) -> None:
         if not reports:
             click.echo(f"{path}: no MCAP files")
     bad = [r for r in reports if r.status in {"damaged", "unfinished"}]
-    if bad and not as_json:
-        hint = " (run with --recover)" if any(r.status == "unfinished" for r in bad) else ""
-        click.echo(f"{len(bad)} of {len(reports)} file(s) need attention{hint}", err=True)
+    if not as_json:
+        live = [r for r in reports if r.status == "being written"]
+        if live:
+            left = ", left alone" if recover else ""
+            click.echo(f"{len(live)} file(s) being written by a running process{left}", err=True)
+        kept = [r for r in reports if r.status == "damaged original"]
+        if kept:
+            click.echo(
+                f"{len(kept)} .damaged original(s) kept from earlier recoveries "
+                "(not read by export; delete them once the recovered files are safe)",
+                err=True,
+            )
+        if bad:
+            hint = " (run with --recover)" if any(r.status == "unfinished" for r in bad) else ""
+            click.echo(f"{len(bad)} of {len(reports)} file(s) need attention{hint}", err=True)
     sys.exit(1 if bad or not reports else 0)
