@@ -12,7 +12,7 @@ from collections import deque
 from pathlib import Path
 
 from edge.messages import Event
-from hub.bus import EventBus, worth_telling
+from hub.bus import EventBus, worth_telling, writable
 from hub.read_model import ReadModel
 
 log = logging.getLogger("fleetdaq.events")
@@ -74,7 +74,7 @@ class EventLog:
         self._file.setFormatter(logging.Formatter("%(message)s"))
 
     def _on_event(self, e: Event) -> None:
-        line = format_event(e)
+        line = writable(format_event(e))  # and so the hub's own log (any handler) takes it
         if self._file is not None:
             self._file.emit(logging.makeLogRecord({"msg": line, "levelno": e.level}))
         log.log(e.level, "%s", line)
