@@ -56,7 +56,7 @@ class _NodeEvents:
     durable: int = -1
     acked: int = -1
     lost: int = 0
-    progress: float = field(default_factory=time.monotonic)
+    progress: float = 0.0
     """When an ack last moved (or the node's numbering began)."""
     pending: dict[int, tuple[Event, int, int]] = field(default_factory=dict)
     """Bus events not acked yet, by id: (the event, its sequence, its epoch)."""
@@ -65,10 +65,16 @@ class _NodeEvents:
 class EventDelivery:
     """Order, dedup and acks of the events nodes spooled. Thread-safe."""
 
-    def __init__(self, acking: frozenset[str] | set[str], stall_s: float = STALL_S) -> None:
-        """`acking`: the nodes this hub records, and so acks."""
+    def __init__(
+        self,
+        acking: frozenset[str] | set[str],
+        stall_s: float = STALL_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """`acking`: the nodes this hub records, and so acks. `clock`: monotonic seconds."""
         self.acking = frozenset(acking)
         self.stall_s = stall_s
+        self._clock = clock
         self.duplicates = 0
         self.rewinds = 0
         self.log_sync: Callable[[], bool] | None = None
@@ -91,7 +97,7 @@ class EventDelivery:
         with self._lock:
             n = self._nodes.get(node)
             if n is None or n.epoch != epoch:  # first seen, or a new (wiped) spool
-                n = self._nodes[node] = _NodeEvents(epoch=epoch)
+                n = self._nodes[node] = _NodeEvents(epoch=epoch, progress=self._clock())
             lost = 0
             expected = floor if n.accepted is None else n.accepted + 1
             if floor > expected:  # the edge dropped these unacked (its spool was full)
@@ -102,13 +108,13 @@ class EventDelivery:
                 seq < expected
                 and n.accepted is not None
                 and seq > n.acked
-                and time.monotonic() - n.progress > self.stall_s
+                and self._clock() - n.progress > self.stall_s
             ):
                 # Accepted long ago and still not written by both: take the replays again.
                 self.rewinds += 1
                 n.accepted = max(n.acked, floor - 1)
                 n.pending.clear()
-                n.progress = time.monotonic()
+                n.progress = self._clock()
                 expected = n.accepted + 1
             if seq < expected:
                 self.duplicates += 1
@@ -170,7 +176,7 @@ class EventDelivery:
                 if node not in self.acking or upto <= n.acked or n.epoch is None:
                     continue
                 n.acked = upto
-                n.progress = time.monotonic()
+                n.progress = self._clock()
                 n.pending = {k: v for k, v in n.pending.items() if v[1] > upto}
                 out.append((node, upto, n.epoch))
         return out
