@@ -198,3 +198,20 @@ def test_an_event_ack_for_what_was_never_spooled_is_refused_and_said(tmp_path: P
     events.ack(0, events.spool.epoch)
     assert events.spool.acked == 0
     events.close()
+
+
+def test_events_a_full_spool_drops_unacked_are_counted_and_raised_as_an_event(
+    tmp_path: Path,
+) -> None:
+    small = StreamSpool(tmp_path / "events", 1_000_000, 3600.0, 65536)
+    events = EventPublisher(None, "fleetdaq/s/buoy/events", "buoy", spool=small)
+    for i in range(4000):  # ~1.3 MB of events, none acked: past the spool's 1 MB
+        events.emit(logging.INFO, "tc", "reading", f"reading {i:05d} " + "x" * 200)
+    assert events.dropped > 0
+    assert small.bytes <= 1_000_000 + 65536
+    kept = [decode(p, Event) for _, _, p in small.read_from(0, 10**6)]
+    notes = [e for e in kept if e.tag == "events_dropped"]
+    assert notes and notes[0].level == logging.ERROR
+    assert sum(int(e.get("dropped") or 0) for e in notes) <= events.dropped
+    assert [e for e in kept if e.tag == "reading"][-1].message.startswith("reading 03999")
+    events.close()

@@ -142,7 +142,7 @@ class Rig:
         out: list[tuple[int, int, Event]] = []
         for path in sorted(self.data.glob("*/*.mcap")):
             with path.open("rb") as fh:
-                for _, channel, msg in make_reader(fh).iter_messages(topics=["/events"]):
+                for _, _, msg in make_reader(fh).iter_messages(topics=["/events"]):
                     e = decode(msg.data, Event)
                     if e.node == "cell":
                         out.append((msg.publish_time, msg.log_time, e))
