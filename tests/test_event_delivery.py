@@ -211,7 +211,8 @@ def test_events_a_full_spool_drops_unacked_are_counted_and_raised_as_an_event(
     assert small.bytes <= 1_000_000 + 65536
     kept = [decode(p, Event) for _, _, p in small.read_from(0, 10**6)]
     notes = [e for e in kept if e.tag == "events_dropped"]
-    assert notes and notes[0].level == logging.ERROR
+    assert notes
+    assert notes[0].level == logging.ERROR
     assert sum(int(e.get("dropped") or 0) for e in notes) <= events.dropped
     assert [e for e in kept if e.tag == "reading"][-1].message.startswith("reading 03999")
     events.close()
