@@ -3,8 +3,9 @@
 With a spool (the agent's), events are delivered like batches: each is appended to the node's
 event spool (`edge.spool.StreamSpool`, folder ``events``) with the next sequence number before
 it is published, and stays there until the hub acks it (``.../ack/events``) as written to
-events.log and the recording. A replay thread sends the unacked ones again, oldest first, when
-the oldest is older than `replay_after_s` and the hub listens; the hub takes them in sequence
+events.log and the recording. A replay thread sends the unacked ones again, oldest first, as
+soon as the hub starts to listen (a connection, the hub back after an outage), and again while
+the oldest is older than `replay_after_s`; the hub takes them in sequence
 order and ignores duplicates (`hub.event_delivery`). So an event raised during a hub outage, or
 before an edge restart during one, reaches the hub with its original time. What a full spool
 drops is counted and raised as an ``events_dropped`` event.
@@ -30,6 +31,8 @@ from edge.wire import encode_event_mark
 
 log = logging.getLogger("fleetdaq.edge")
 
+LISTEN_POLL_S = 0.2
+"""How often the replay thread looks whether the hub listens (its subscription matches)."""
 REPLAY_BATCH = 500
 """Events re-sent in one replay pass: below the hub's per-node burst (`hub.node_watch`), so a
 backlog is never taken for a flood; the next pass follows the ack."""
@@ -172,20 +175,35 @@ class EventPublisher:
             sent=spool.next_sequence - 1,
         )
 
+    def _hub_listens(self) -> bool:
+        pub = self._pub
+        return pub is not None and bool(pub.matching_status.matching)
+
     def _replay(self) -> None:
-        while not self._stop.wait(self.replay_after_s):
+        listened, last_pass = False, 0.0
+        while not self._stop.wait(LISTEN_POLL_S):
             try:
-                self._replay_pass()
+                if not self._hub_listens():
+                    listened = False
+                    continue
+                now = time.monotonic()
+                if not listened or now - last_pass >= self.replay_after_s:
+                    # The hub has just come: what waited for it goes now, whatever its age.
+                    self._replay_pass(every_unacked=not listened)
+                    last_pass = now
+                listened = True
             except Exception:  # a failed pass is tried again; the events stay in the spool
                 if self._stop.is_set():
                     return
                 log.exception("replaying events from the spool failed; trying again")
 
-    def _replay_pass(self) -> None:
+    def _replay_pass(self, every_unacked: bool) -> None:
         spool = self.spool
         assert spool is not None
         oldest = spool.oldest_unacked_time_ns()
-        if oldest is None or time.time_ns() - oldest < self.replay_after_s * 1e9:
+        if oldest is None:
+            return
+        if not every_unacked and time.time_ns() - oldest < self.replay_after_s * 1e9:
             return  # the newest went out live and their ack is still due
         first = spool.acked + 1
         until = min(spool.next_sequence - 1, first + REPLAY_BATCH - 1)
