@@ -13,9 +13,11 @@ written it (`logged`, `recorded`); the recorder's flush makes what it wrote dura
 sequence that is in both for good. Only the hub that records a node acks its events.
 
 If an accepted event never reaches both (a subscriber's queue overflowed, events.log refused
-the write), the ack would wait forever: when a replay of an accepted but unacked event comes
-and nothing was acked for `stall_s`, the node's accepted sequence goes back to its last ack and
-the replays are taken again (a line may then be written twice, never lost).
+the write), the ack would wait forever: when a replay of an event that one of them has not
+written comes and nothing was acked for `stall_s`, the node's accepted sequence goes back to
+what both wrote and the replays are taken again (the one that had it may write it twice; an
+event is never lost). Events both wrote but the recorder has not flushed (a full disk) just
+wait for the flush.
 """
 
 from __future__ import annotations
@@ -104,15 +106,17 @@ class EventDelivery:
                 lost = floor - expected
                 n.lost += lost
                 expected = floor
+            handled = min(n.logged, n.recorded)
             if (
                 seq < expected
                 and n.accepted is not None
-                and seq > n.acked
+                and seq > max(n.acked, handled)
                 and self._clock() - n.progress > self.stall_s
             ):
-                # Accepted long ago and still not written by both: take the replays again.
+                # Accepted long ago and still not written by both (not merely waiting for a
+                # flush, as while the hub's disk is full): take the replays again.
                 self.rewinds += 1
-                n.accepted = max(n.acked, floor - 1)
+                n.accepted = max(n.acked, handled, floor - 1)
                 n.pending.clear()
                 n.progress = self._clock()
                 expected = n.accepted + 1

@@ -216,3 +216,17 @@ def test_events_a_full_spool_drops_unacked_are_counted_and_raised_as_an_event(
     assert sum(int(e.get("dropped") or 0) for e in notes) <= events.dropped
     assert [e for e in kept if e.tag == "reading"][-1].message.startswith("reading 03999")
     events.close()
+
+
+def test_events_written_but_waiting_for_a_flush_are_never_taken_twice() -> None:
+    clock = Clock()
+    hub = Hub(clock)
+    hub.offer(0)
+    for e in hub.bus:  # written by both; the recorder's disk is full, so no clean flush
+        hub.delivery.logged(e)
+        hub.delivery.recorded(e)
+    clock.now += 600.0
+    assert hub.offer(0) is Verdict.DUPLICATE
+    assert hub.delivery.rewinds == 0
+    hub.delivery.flushed()
+    assert hub.delivery.acks() == [("buoy", 0, EPOCH)]
