@@ -190,3 +190,13 @@ class EventDelivery:
         with self._lock:
             n = self._nodes.get(node)
             return n.lost if n is not None else 0
+
+    def summary(self) -> dict[str, object]:
+        """Per node: the last sequence taken and acked, events lost; and the duplicates and
+        rewinds in all (the hub's ``--summary``)."""
+        with self._lock:
+            nodes = {
+                node: {"accepted": n.accepted, "acked": n.acked, "lost": n.lost}
+                for node, n in sorted(self._nodes.items())
+            }
+        return {"nodes": nodes, "duplicates": self.duplicates, "rewinds": self.rewinds}

@@ -603,4 +603,5 @@ class Recorder:
                 "refused_keys": dict(self.refused.counts),
                 "events_not_recorded": self.recovery.events_not_recorded,
                 "messages_not_recorded": self.recovery.messages_not_recorded,
+                "spooled_events": self.event_delivery.summary(),
             }

@@ -230,3 +230,17 @@ def test_events_written_but_waiting_for_a_flush_are_never_taken_twice() -> None:
     assert hub.delivery.rewinds == 0
     hub.delivery.flushed()
     assert hub.delivery.acks() == [("buoy", 0, EPOCH)]
+
+
+def test_the_summary_says_per_node_what_was_taken_acked_and_lost() -> None:
+    hub = Hub()
+    hub.offer(0)
+    hub.offer(0)
+    hub.delivery.offer("buoy", 5, 5, EPOCH, event("e5"), hub.bus.append)
+    hub.write()
+    hub.delivery.acks()
+    assert hub.delivery.summary() == {
+        "nodes": {"buoy": {"accepted": 5, "acked": 5, "lost": 4}},
+        "duplicates": 1,
+        "rewinds": 0,
+    }
