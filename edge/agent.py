@@ -5,6 +5,10 @@ the background and attaches the publishers when it answers. It publishes typed n
 (`NodeHealth`) about once a second, relays the hub's acks to the spools (refusing any ack for a
 sequence not sent yet), and holds a liveliness token so the hub sees the node come and go.
 
+Its events are spooled and acked like batches (`edge.event_publisher`, spool folder ``events``);
+typed health is not: it is a state, sent only while the hub is reachable, and its counters are
+totals, so the first health after an outage tells all that the missed ones would have.
+
 Its outputs (`edge.outputs`) start at their initial values in the safe state; the queryable
 that answers commands and the hub-heartbeat watch are attached with the session. Interlocks run
 in the stream loops, so they hold whether or not the hub is there.
@@ -32,7 +36,7 @@ from edge.drivers.table import create_driver
 from edge.errors import DriverError
 from edge.event_publisher import EventPublisher
 from edge.host_metrics import HostMetricsReader
-from edge.keys import SiteKeys
+from edge.keys import EVENTS_STREAM, SiteKeys
 from edge.messages import KeyValue, NodeHealth, StreamHealth
 from edge.outputs import OutputService
 from edge.paths import default_spool_dir
@@ -46,6 +50,9 @@ from edge.wire import decode_mark
 from edge.zenoh_session import client_config
 
 log = logging.getLogger("fleetdaq.edge")
+
+EVENTS_SEGMENT_BYTES = 1024 * 1024
+"""Event spool segments: events are small, and acked segments are freed whole."""
 
 
 class EdgeAgent:
@@ -125,8 +132,19 @@ class EdgeAgent:
     def _start(self) -> None:
         sid, node = self.site.site, self.node
         self._started = True
-        events = self.events = EventPublisher(None, self.keys.events(node), node)
         node_cfg = self.site.nodes[node]
+        events = self.events = EventPublisher(
+            None,
+            self.keys.events(node),
+            node,
+            spool=StreamSpool(
+                self.spool_dir / EVENTS_STREAM,
+                node_cfg.spool.max_bytes,
+                node_cfg.spool.max_age_s,
+                EVENTS_SEGMENT_BYTES,
+            ),
+            replay_after_s=node_cfg.spool.replay_after_s,
+        )
         self.time_sync = make_time_sync_monitor(
             node_cfg, lambda level, tag, msg, **kv: events.emit(level, "clock", tag, msg, **kv)
         )
@@ -197,8 +215,12 @@ class EdgeAgent:
 
         def on_ack(sample: Any) -> None:
             key = self.keys.parse(str(sample.key_expr))
-            loop = by_stream.get(key.name) if key is not None else None
             mark = decode_mark(sample.payload.to_bytes())
+            if key is not None and key.name == EVENTS_STREAM and mark is not None:
+                assert self.events is not None
+                self.events.ack(*mark)
+                return
+            loop = by_stream.get(key.name) if key is not None else None
             if loop is None or mark is None:
                 return
             seq, epoch = mark
@@ -324,6 +346,11 @@ class EdgeAgent:
         while not self._stop.wait(interval or 0.05):
             for loop in self.loops:
                 loop.sync_spool()
+            if self.events is not None:
+                try:
+                    self.events.sync()
+                except OSError as err:
+                    log.error("event spool fsync failed: %s", err)
 
     def close(self) -> None:
         """Stop every stream and close the session. Idempotent; safe after a partial start."""

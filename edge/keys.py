@@ -9,6 +9,7 @@
 | ``<node>/events``            | system messages (Event)                       | edge → hub |
 | ``<node>/alive``             | liveliness token                              | edge       |
 | ``<node>/ack/<stream>``      | highest sequence durably recorded (uint64)    | hub → edge |
+|                              | (``ack/events``: of the node's event spool)   |            |
 | ``<node>/out/<output>``      | commands to an output (request/reply)         | hub → edge |
 | ``hub/<what>``               | heartbeat, status and the hub's services      | hub        |
 """
@@ -22,6 +23,12 @@ from typing import Final
 ROOT: Final = "fleetdaq"
 HUB: Final = "hub"
 """The node name reserved for the hub's own keys."""
+
+
+EVENTS_STREAM: Final = "events"
+"""A node's events as a spooled pseudo-stream: its acks come on ``<node>/ack/events`` and its
+spool is the folder ``events`` beside the streams' (a name no stream may take:
+`edge.schema.RESERVED_STREAM_NAMES`)."""
 
 
 class Kind(Enum):

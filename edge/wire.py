@@ -66,6 +66,26 @@ def decode_mark(raw: bytes | None) -> tuple[int, int | None] | None:
     return None
 
 
+_EVENT_MARK = struct.Struct("<QQQ")
+
+
+def encode_event_mark(sequence: int, floor: int, epoch: int) -> bytes:
+    """The attachment of an event an edge spooled: its sequence in the node's event spool, the
+    spool's floor (lowest sequence it still holds) and epoch; three little-endian uint64.
+
+    Events carry no sequence of their own (the `Event` message is the same from the hub's
+    services), so it travels beside the payload, as a batch's floor does."""
+    return _EVENT_MARK.pack(sequence, floor, epoch)
+
+
+def decode_event_mark(raw: bytes) -> tuple[int, int, int] | None:
+    """(sequence, floor, epoch) of `encode_event_mark`, None when `raw` is not one."""
+    if len(raw) != _EVENT_MARK.size:
+        return None
+    seq, floor, epoch = _EVENT_MARK.unpack(raw)
+    return int(seq), int(floor), int(epoch)
+
+
 # --- The message (its definition ships in edge/fleetdaq_msgs/msg/SampleBatch.msg) ---------------
 
 CLOCK_QUALITY_TYPE: Final = "fleetdaq_msgs/msg/ClockQuality"

@@ -1,18 +1,23 @@
 """events.log: every event, one line each, in a size-limited text file (like MODAQ 2's supervisor
 log: rotated at `max_bytes`, `backups` old files kept), also to Python logging, and the latest
-ones and the counts per level in the read model. A subscriber of the event bus."""
+ones and the counts per level in the read model. A subscriber of the event bus.
+
+Events a node spooled are acked only once their line is in events.log and fsynced
+(`hub.event_delivery`): the event log says what it wrote and lends its fsync."""
 
 from __future__ import annotations
 
 import datetime as dt
 import logging
 import logging.handlers
+import os
 import sys
 from collections import deque
 from pathlib import Path
 
 from edge.messages import Event
 from hub.bus import EventBus, worth_telling, writable
+from hub.event_delivery import EventDelivery
 from hub.read_model import ReadModel
 
 log = logging.getLogger("fleetdaq.events")
@@ -58,6 +63,7 @@ class EventLog:
         self.recent: deque[Event] = deque(maxlen=tail)
         self.counts: dict[str, int] = {}
         self._file: _QuietRotatingFile | None = None
+        self.delivery: EventDelivery | None = None
         self._sub = bus.subscribe(self.name, self._on_event)
 
     def start(self) -> None:
@@ -73,10 +79,35 @@ class EventLog:
         )
         self._file.setFormatter(logging.Formatter("%(message)s"))
 
+    def deliver(self, delivery: EventDelivery) -> None:
+        """Tell `delivery` which events are written, and fsync for it before an ack."""
+        self.delivery = delivery
+        delivery.log_sync = self.sync
+
+    def sync(self) -> bool:
+        """fsync events.log (the current file; a rotated one was closed whole). False if the
+        file is not open or the fsync failed."""
+        f = self._file
+        if f is None:
+            return False
+        with f.lock:  # type: ignore[union-attr]  # emit and rotation hold it too
+            stream = f.stream
+            if stream is None:
+                return False
+            try:
+                os.fsync(stream.fileno())
+            except (OSError, ValueError) as err:
+                f.handleError(logging.makeLogRecord({"msg": f"fsync: {err}"}))
+                return False
+        return True
+
     def _on_event(self, e: Event) -> None:
         line = writable(format_event(e))  # and so the hub's own log (any handler) takes it
         if self._file is not None:
+            failures = self._file.write_failures
             self._file.emit(logging.makeLogRecord({"msg": line, "levelno": e.level}))
+            if self.delivery is not None and self._file.write_failures == failures:
+                self.delivery.logged(e)
         log.log(e.level, "%s", line)
         self.recent.append(e)
         self.counts[e.level_name] = self.counts.get(e.level_name, 0) + 1

@@ -6,6 +6,8 @@ must decode into `NodeHealth` and an event into `Event` (bounded lengths, no tra
 and name the node its key names. Health goes to the read model, to the listeners (the fleet's
 time view) and into the recording (``/<node>/health``); events go onto the event bus, at most
 `events_per_s` per node (a burst of `event_burst`): a flooding node cannot drown the others.
+An event an edge spooled carries its sequence (`edge.wire.encode_event_mark`): it goes onto the
+bus in sequence order and once (`hub.event_delivery`), and is acked once written for good.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ from edge.config.site import SiteConfig
 from edge.errors import WireError
 from edge.keys import Kind, SiteKeys
 from edge.messages import NODE_HEALTH_TYPE, Event, NodeHealth
-from edge.wire import plausible_time
+from edge.wire import decode_event_mark, plausible_time
 from hub.bus import EventBus
+from hub.event_delivery import Verdict
 from hub.read_model import NodeView, ReadModel
 from hub.recorder import Recorder
 from hub.refused import RefusedKeys
@@ -237,7 +240,31 @@ class NodeWatch:
         if event.node != node:
             self._bad(node, "event", f"it says it is from {event.node!r}")
             return
-        self.bus.publish(event)
+        att = sample.attachment
+        if att is None:  # a peer without an event spool: best effort, as it sent it
+            self.bus.publish(event)
+            return
+        mark = decode_event_mark(att.to_bytes())
+        if mark is None:
+            self._bad(node, "event", "its attachment is not a sequence, floor and epoch")
+            return
+        seq, floor, epoch = mark
+        if floor > seq:
+            self._bad(node, "event", f"floor {floor} above its own sequence {seq}")
+            return
+        offer = self.recorder.event_delivery.offer(node, seq, floor, epoch, event, self.bus.publish)
+        if offer.lost:
+            self.bus.emit(
+                logging.ERROR,
+                "hub",
+                "events_lost",
+                f"{node}: {offer.lost} event(s) before sequence {floor} never came: its event "
+                "spool dropped them unacked",
+                node=node,
+                lost=offer.lost,
+            )
+        if offer.verdict is Verdict.DUPLICATE:
+            bucket.tokens = min(bucket.burst, bucket.tokens + 1.0)  # a replay is not a flood
 
     def _publish(self) -> None:
         with self._lock:

@@ -218,6 +218,7 @@ class PartitionRuntime:
             self.refused,
             partition=partition,
         )
+        self.event_log.deliver(self.recorder.event_delivery)
         self.nodes = NodeWatch(
             self.router,
             site,

@@ -35,13 +35,14 @@ from typing import Any
 from edge.cdr import encode
 from edge.config.site import SiteConfig, effective_yaml
 from edge.errors import WireError
-from edge.keys import SiteKeys
+from edge.keys import EVENTS_STREAM, SiteKeys
 from edge.messages import EVENT_TYPE, Event
 from edge.systemd import Beat
 from edge.threads import NamedThread
 from edge.wire import BatchDecoder, decode_mark, encode_mark, encode_u64, plausible_time
 from hub.batch_feed import BatchFeed, FedBatch
 from hub.bus import EventBus
+from hub.event_delivery import EventDelivery
 from hub.read_model import ReadModel, RecorderView
 from hub.refused import RefusedKeys
 from hub.router import Router
@@ -126,6 +127,8 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._last_view = 0.0
         self.reports = StreamReports(bus)
+        self.event_delivery = EventDelivery(set(self.nodes))
+        """The events the nodes it records spooled: acked here once recorded and logged."""
         self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=100_000)
 
     # --- lifecycle ----------------------------------------------------------------------------
@@ -217,7 +220,7 @@ class Recorder:
     def _on_event(self, e: Event) -> None:
         """A bus subscriber: the event goes to the writer thread's queue (and an edge's report
         of the batches its full spool dropped goes to the stream's accounting)."""
-        self._queue.put((_EVENT, encode(e), e.time_ns, time.time_ns()))
+        self._queue.put((_EVENT, e, encode(e), e.time_ns, time.time_ns()))
         if e.tag == "spool_full":
             st = self.streams.get((e.node, e.source))
             try:
@@ -302,7 +305,8 @@ class Recorder:
                 st.queued_bytes -= len(payload)
                 self._record(st, payload, recv_ns, mark)
             elif kind == _EVENT:
-                self._record_event(*item[1:])
+                self._record_event(*item[2:])
+                self.event_delivery.recorded(item[1])
             elif kind == _DROPS:
                 self.reports.dropped_by_edge(*item[1:])
             else:
@@ -440,6 +444,9 @@ class Recorder:
         recovery = self.recovery
         if not recovery.writable():
             return
+        # Events written while a write error was pending may go down with the next abandoned
+        # file: only a flush that starts clean makes the recorded ones durable.
+        clean = not recovery.recovering()
         if recovery.recovering() and self.session.current_file is None and recovery.held:
             # No batch has come to open a file since the error (every edge may be down): the
             # oldest held event opens one, so this flush tells whether writing works again
@@ -455,6 +462,8 @@ class Recorder:
         elif not self._guarded("flushing", self.session.flush):
             return
         recovery.flushed()  # durable now
+        if clean:
+            self.event_delivery.flushed()
         if recovery.recovering() and self.session.current_file is not None:
             # The flush of a file went through: writing works again. The held events go in
             # now and are made durable by the next flush (held again if that fails). With no
@@ -472,6 +481,8 @@ class Recorder:
                 )
                 put(self.keys.ack(st.node, st.stream), ack)
                 st.acked_sent = st.durable
+        for node, seq, epoch in self.event_delivery.acks():
+            put(self.keys.ack(node, EVENTS_STREAM), encode_mark(seq, epoch))
 
     def _publish_view(self, force: bool = False, state: str | None = None) -> None:
         now = time.monotonic()
@@ -599,4 +610,5 @@ class Recorder:
                 "refused_keys": dict(self.refused.counts),
                 "events_not_recorded": self.recovery.events_not_recorded,
                 "messages_not_recorded": self.recovery.messages_not_recorded,
+                "spooled_events": self.event_delivery.summary(),
             }

@@ -116,6 +116,7 @@ class HubRuntime:
         self.recorder = Recorder(
             self.router, site, self.data_dir, self.bus, self.model, self.refused, self.feed
         )
+        self.event_log.deliver(self.recorder.event_delivery)
         self.nodes = NodeWatch(self.router, site, self.bus, self.model, self.recorder, self.refused)
         self.fleet = FleetTimeService(self.bus, self.model, self.nodes)
         self.certificates = (

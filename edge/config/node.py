@@ -24,14 +24,16 @@ class SpoolConfig(Strict):
     """Root of the spool; each node and stream gets its own folder below it. Default: the
     per-system location of `edge.paths.default_spool_dir` (never the current directory)."""
     max_bytes: Annotated[Int, Field(ge=1_000_000)] = 2_000_000_000
-    """Per stream. Past it the oldest batches are dropped (counted, raised as an event)."""
+    """Per stream, and for the node's event spool. Past it the oldest batches (events) are
+    dropped (counted, raised as an event)."""
     max_age_s: Annotated[Float, Field(gt=0)] = 7 * 24 * 3600.0
-    """Per stream. Batches older than this are dropped even if not acked (counted, event)."""
+    """Per stream, and for the node's event spool. Batches (events) older than this are dropped
+    even if not acked (counted, event)."""
     segment_bytes: Annotated[Int, Field(ge=65536)] = 16 * 1024 * 1024
     fsync_interval_s: Annotated[Float, Field(ge=0)] = 1.0
     """How often the open segment is fsynced (a crash loses nothing; power loss up to this)."""
     replay_after_s: Annotated[Float, Field(gt=0)] = 3.0
-    """Replay from the last ack when the oldest unacked batch is older than this."""
+    """Replay from the last ack when the oldest unacked batch (event) is older than this."""
     replay_mb_per_s: Annotated[Float, Field(gt=0)] = 40.0
     """Replay rate limit, so live data keeps flowing while a backlog drains."""
 
