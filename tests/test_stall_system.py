@@ -1,8 +1,10 @@
-"""A paused edge is a late reader, not a clock step: hub and an edge streaming the simulated T8
-as separate OS processes over real Zenoh on loopback. The edge is stopped (SIGSTOP) for 5 s
-while the T8 goes on scanning into LJM's buffer, then continued: it drains the backlog in reads
-that all come seconds late. Nothing is lost, the recorded times only go forward, the device-time
-fit does not restart, and the sample times stay on the simulator's clock."""
+"""A paused edge is a late reader, not a clock step nor a broken sensor: hub and an edge
+streaming the simulated T8 and a simulated thermocouple as separate OS processes over real
+Zenoh on loopback. The edge is stopped (SIGSTOP) for 5 s while the T8 goes on scanning into
+LJM's buffer, then continued: it drains the backlog in reads that all come seconds late.
+Nothing is lost, the recorded times only go forward, the device-time fit does not restart, the
+sample times stay on the simulator's clock; the thermocouple's polls that fell due meanwhile are
+read late and counted as late, not marked invalid, and its sensor-fault alarm stays quiet."""
 
 from __future__ import annotations
 
@@ -36,6 +38,13 @@ nodes:
         scans_per_batch: {scans}
         sim: {{drift_ppm: {drift}, read_latency_ms: 0.5}}
         channels: [{{name: heave, unit: m}}]
+      tc:
+        driver: max31855
+        rate_hz: 4
+        sim: {{ambient_c: 24, peak_c: 300}}
+        channels: [{{name: substrate, unit: degC}}, {{name: cold_junction, unit: degC}}]
+alarms:
+  substrate_hot: {{channel: wec/tc/substrate, above: 1000}}
 """
 
 
@@ -131,3 +140,22 @@ def test_sample_times_stay_on_the_simulators_clock_across_the_stop(stalled: Stal
     since = s.time_ns >= stalled.stopped_ns - 1e9
     error_ms = np.abs(offset[since] - reference) / 1e6
     assert error_ms.max() < 1.0, np.percentile(error_ms, [50, 99, 100])
+
+
+def test_a_thermocouple_on_the_stopped_edge_counts_late_polls_and_raises_no_sensor_fault(
+    stalled: Stalled,
+) -> None:
+    s = fr.read_stream(stalled.data, "wec/tc")
+    assert s.gaps == (), s.gaps
+    assert not np.isnan(s.data).any(), "a late poll marked invalid"
+    assert np.all(np.diff(s.time_ns) > 0)
+    events = [e for e in fr.read_events(stalled.data) if e.node == "wec" and e.source == "tc"]
+    tags = [e.tag for e in events]
+    assert "polls_late" in tags, tags
+    assert not any("fault" in t for t in tags), tags
+    health = [h.stream("tc") for h in fr.read_health(stalled.data, "wec")]
+    late = max(h.late_polls for h in health if h is not None)
+    assert late >= 15, late  # 20 polls fell due in the 5 s
+    assert max(h.invalid_samples for h in health if h is not None) == 0
+    fault = [a for a in fr.read_alarms(stalled.data) if a.name == "substrate_hot.fault"]
+    assert not any(a.active for a in fault), fault
