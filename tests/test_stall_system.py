@@ -45,6 +45,7 @@ nodes:
         channels: [{{name: substrate, unit: degC}}, {{name: cold_junction, unit: degC}}]
 alarms:
   substrate_hot: {{channel: wec/tc/substrate, above: 1000}}
+  tc_late: {{stream: wec/tc, late_polls: 5, severity: minor}}
 """
 
 
@@ -157,5 +158,9 @@ def test_a_thermocouple_on_the_stopped_edge_counts_late_polls_and_raises_no_sens
     late = max(h.late_polls for h in health if h is not None)
     assert late >= 15, late  # 20 polls fell due in the 5 s
     assert max(h.invalid_samples for h in health if h is not None) == 0
-    fault = [a for a in fr.read_alarms(stalled.data) if a.name == "substrate_hot.fault"]
+    alarms = fr.read_alarms(stalled.data)
+    fault = [a for a in alarms if a.name == "substrate_hot.fault"]
     assert not any(a.active for a in fault), fault
+    late_alarm = [a for a in alarms if a.name == "tc_late" and a.active]
+    assert late_alarm, "the late-polls alarm was raised"
+    assert late_alarm[0].value >= 5
