@@ -126,7 +126,7 @@ class DeviceTimeFit:
         self._slope = 1.0
         self._offset = 0.0
         self._ahead_run = 0  # late reads since they last came down (0: not catching up)
-        self._ahead_low = 0.0  # how far above the line the first of them was
+        self._ahead_first = 0.0  # how far above the line the first of them was
         self._ahead_since = 0.0  # device x of the first of them
 
     # -- observations --------------------------------------------------------------------------
@@ -234,19 +234,19 @@ class DeviceTimeFit:
         if self._ahead_run == 0:
             if r <= self._step_ahead:
                 return False
-            self._ahead_low, self._ahead_since = r, x
+            self._ahead_first, self._ahead_since = r, x
         elif r <= self._catch_up:
             self._ahead_run = 0
             return False
-        elif r < self._ahead_low - self._catch_up:
-            self._ahead_run, self._ahead_low, self._ahead_since = 0, r, x
+        elif r < self._ahead_first - self._catch_up:
+            self._ahead_run, self._ahead_first, self._ahead_since = 0, r, x
         self._ahead_run += 1
         if (
             self._ahead_run < self._step_ahead_reads
             or x - self._ahead_since < self._step_ahead_hold
         ):
             return True
-        if self._ahead_low > self._step_ahead:
+        if self._ahead_first > self._step_ahead:
             return None
         self._ahead_run = 0
         return False
