@@ -328,6 +328,7 @@ class EdgeAgent:
             spool_dropped_batches=spool.dropped_batches,
             oldest_unacked_age_s=max(0.0, (now_ns - oldest) / 1e9) if oldest is not None else 0.0,
             acks_refused=spool.acks_refused,
+            late_polls=c.late_polls,
             device=tuple(KeyValue(str(k), str(v)) for k, v in device.items()),
         )
 

@@ -22,6 +22,15 @@ hull of those pairs:
   measured from the device clock itself. A reopened stream (index back to 0) starts a new
   mapping; the device-to-host fit survives it when the device clock ran on (a stream restart)
   and is rebuilt when it did not (a power-cycled device) or when the host clock stepped.
+- A stalled reader is not a clock step. A reader paused for seconds (SIGSTOP, a VM pause,
+  load) finds the device's buffer full and drains it in reads that all come late: far above
+  the line, then lower and lower as it catches up, back on the line once the backlog is gone.
+  The device clock says how much device time each read holds, so the fit and the stamps go on
+  untouched. A host clock stepped ahead looks different: every later read is above the line by
+  the same amount, for good. Only that is a forward step: reads far above the line whose
+  lowest point has stopped coming down for `step_ahead_reads` reads and `step_ahead_hold_s` of
+  device time. (A read *below* the line is never a stall: reads only ever come after their
+  scans, so one far below means the clock went back, at once.)
 """
 
 from __future__ import annotations
@@ -62,9 +71,11 @@ class DeviceTimeFit:
         buckets: how many decimation buckets cover the horizon.
         step_back_ns: a read this far *below* the fitted line means the host (or device) clock
             stepped back: the fit restarts from it.
-        step_ahead_ns, step_ahead_reads: that many consecutive reads each more than
-            `step_ahead_ns` above the line mean a forward step: the fit restarts. (A reader that
-            merely falls behind also reads late, so the bar is high.)
+        step_ahead_ns, step_ahead_reads, step_ahead_hold_s: consecutive reads each more than
+            `step_ahead_ns` above the line, whose lowest point has not come down by more than
+            `catch_up_ns` for `step_ahead_reads` reads and `step_ahead_hold_s` s of device time,
+            mean a forward step: the fit restarts. Reads that keep coming down are a reader
+            catching up after a stall (see the module's docstring): the fit holds.
     """
 
     def __init__(
@@ -75,6 +86,8 @@ class DeviceTimeFit:
         step_back_ns: int = 10_000_000,
         step_ahead_ns: int = 1_000_000_000,
         step_ahead_reads: int = 20,
+        step_ahead_hold_s: float = 1.5,
+        catch_up_ns: int = 10_000_000,
     ) -> None:
         if nominal_rate_hz <= 0 or horizon_s <= 0 or buckets < 2:
             raise ValueError("rate and horizon must be positive, buckets at least 2")
@@ -84,6 +97,8 @@ class DeviceTimeFit:
         self._step_back = float(step_back_ns)
         self._step_ahead = float(step_ahead_ns)
         self._step_ahead_reads = step_ahead_reads
+        self._step_ahead_hold = step_ahead_hold_s * 1e9
+        self._catch_up = float(catch_up_ns)
         self.restarts = 0
         """How often the fit started over (clock steps, power-cycled devices)."""
         self._device_period = self.nominal_period_ns
@@ -110,7 +125,9 @@ class DeviceTimeFit:
         self._open_bucket = -1
         self._slope = 1.0
         self._offset = 0.0
-        self._ahead_run = 0
+        self._ahead_run = 0  # late reads since they last came down (0: not catching up)
+        self._ahead_first = 0.0  # how far above the line the first of them was
+        self._ahead_since = 0.0  # device x of the first of them
 
     # -- observations --------------------------------------------------------------------------
 
@@ -176,17 +193,19 @@ class DeviceTimeFit:
         y = float(host_ns - self._origin[1])
         if self._open is not None:
             r = self._residual(x, y)
-            self._ahead_run = self._ahead_run + 1 if r > self._step_ahead else 0
-            if r < -self._step_back or self._ahead_run >= self._step_ahead_reads:
+            late = self._judge_late(x, r)
+            if r < -self._step_back or late is None:
                 self._restart(
                     f"the host clock stepped back (a read {-r / 1e6:.1f} ms before the fit)"
                     if r < 0
                     else f"the host clock stepped ahead ({self._ahead_run} reads each more "
-                    f"than {self._step_ahead / 1e9:g} s after the fit)"
+                    f"than {self._step_ahead / 1e9:g} s after the fit, not coming back down)"
                 )
                 self._segment = self._last
                 self._add(device_ns, host_ns)
                 return
+            if late:
+                return  # a read from a backlog says nothing about when its scans were taken
         pair = _Pair(x, y)
         bucket = int(x // self._bucket)
         if self._open is None or bucket != self._open_bucket:
@@ -196,6 +215,41 @@ class DeviceTimeFit:
         elif y - self._slope * x < self._open.y - self._slope * self._open.x:
             self._open = pair
         self._fit()
+
+    def _judge_late(self, x: float, r: float) -> bool | None:
+        """Is this read, `r` above the line, one of a reader catching up on a backlog (True:
+        it stays out of the fit), an ordinary read (False), or the proof of a forward host
+        clock step (None)?
+
+        A read more than `step_ahead_ns` above the line starts a catch-up. Until one comes back
+        within `catch_up_ns` of the line, the reads are late ones: the reader drains the backlog,
+        each read lower than the one before by the device time it holds less what it took. Left
+        in, they would tilt the fit across the hole the stall left in the prompt reads. The run
+        starts over whenever a read comes down by more than `catch_up_ns` below its first, so
+        even a slow catch-up keeps it going (read jitter does that a few times at most). Reads
+        that stop coming down for `step_ahead_reads` reads and `step_ahead_hold_s` s of device
+        time are a clock that stepped ahead if they are still far above the line, and reads that
+        simply come later than before if they are not (the catch-up is over).
+        """
+        if self._ahead_run == 0:
+            if r <= self._step_ahead:
+                return False
+            self._ahead_first, self._ahead_since = r, x
+        elif r <= self._catch_up:
+            self._ahead_run = 0
+            return False
+        elif r < self._ahead_first - self._catch_up:
+            self._ahead_run, self._ahead_first, self._ahead_since = 0, r, x
+        self._ahead_run += 1
+        if (
+            self._ahead_run < self._step_ahead_reads
+            or x - self._ahead_since < self._step_ahead_hold
+        ):
+            return True
+        if self._ahead_first > self._step_ahead:
+            return None
+        self._ahead_run = 0
+        return False
 
     def _close_bucket(self, pair: _Pair, now_x: float) -> None:
         self._closed.append(pair)

@@ -174,6 +174,9 @@ class StreamHealth:
     oldest_unacked_age_s: float
     acks_refused: int
     device: tuple[KeyValue, ...] = ()
+    late_polls: int = 0
+    """Polls of a polled device read a full period or more late (a busy or stopped host;
+    read late, not skipped, not invalid)."""
 
     def device_value(self, key: str) -> str | None:
         return next((kv.value for kv in self.device if kv.key == key), None)

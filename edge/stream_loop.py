@@ -40,6 +40,7 @@ class StreamCounters:
     batches: int = 0
     scans: int = 0
     invalid_samples: int = 0
+    late_polls: int = 0
     read_errors: int = 0
     next_sequence: int = 0
     replayed: int = 0
@@ -212,6 +213,7 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
+            c.late_polls += block.late_polls
             for hook in self.batch_hooks:
                 self._run_hook(hook, values)
             self.latest = values[-1].copy()  # `values` is reused by the next batch

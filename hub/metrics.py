@@ -241,6 +241,15 @@ def _health(gauge: Any, node: str, h: NodeHealth) -> None:
             node,
             h.certificate_not_after_ns / 1e9,
         )
+    for s in h.streams:
+        gauge(
+            "fleetdaq_stream_late_polls",
+            "Polls of a polled device read a period or more late (a busy or stopped edge host, "
+            "not a sensor fault), since the agent started.",
+            node,
+            float(s.late_polls),
+            stream=s.name,
+        )
     if h.streams:
         gauge(
             "fleetdaq_node_spool_bytes",

@@ -291,3 +291,96 @@ def test_each_restart_says_why_and_how_far_times_jumped(what: str, why: str, ahe
     assert clock.restarted is not None
     assert clock.restarted.why.startswith(why)
     assert (clock.restarted.jump_ns > 0) is ahead
+
+
+# --- a stalled reader (SIGSTOP, a VM pause, load) is not a clock step -----------------------
+
+
+def _run_with_stall(
+    clock: DeviceTimeFit,
+    stall_at_s: float,
+    stall_s: float,
+    after_s: float,
+    read_cost_ns: float = 0.5e6,
+    step_ns: int = 0,
+    step_at_s: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A T8 streaming 10 kS/s with its own clock (50 ppm fast), read 100 scans at a time,
+    each read 0-5 ms late. At `stall_at_s` the reader stops for `stall_s`; the device buffers
+    meanwhile, and the reader then drains the backlog: a read whose scans were there before
+    the previous read returned comes `read_cost_ns` after that one. From
+    `step_at_s` the host clock is `step_ns` off. Every batch is stamped as the agent stamps it.
+
+    Returns each batch's first-sample time, its end (where the next may start) and the truth
+    (the host time its first scan was sampled), all ns from T0."""
+    rate, scans, drift = 10_000.0, 100, 50e-6
+    rng = np.random.default_rng(11)
+    device_period = 1e9 / rate
+    host_period = device_period / (1 + drift)
+    stall_from, stall_to = stall_at_s * 1e9, (stall_at_s + stall_s) * 1e9
+    first, end, truth = [], [], []
+    previous = -1.0  # when the previous read returned (host ns from T0)
+    for k in range(1, round((stall_at_s + stall_s + after_s) * rate / scans) + 1):
+        last = k * scans - 1
+        due = last * host_period + rng.uniform(0, 5e6)
+        if stall_from <= due < stall_to:
+            due = stall_to  # the reader was stopped when the scans came in
+        read = due if due > previous else previous + read_cost_ns
+        previous = read
+        host = T0 + round(read)
+        if step_at_s is not None and read >= step_at_s * 1e9:
+            host += step_ns
+        clock.observe(last, host, 7_000_000_000 + round(last * device_period))
+        t0, period = clock.stamp(last + 1 - scans, scans)
+        first.append(t0 - T0)
+        end.append(t0 - T0 + round(period * scans))
+        truth.append((last + 1 - scans) * host_period)
+    return np.asarray(first), np.asarray(end), np.asarray(truth)
+
+
+@pytest.mark.parametrize(
+    ("stall_s", "read_cost_ns"),
+    [(3.5, 0.5e6), (5.0, 0.5e6), (60.0, 0.5e6), (5.0, 9.5e6)],
+    ids=["3.5 s", "5 s", "60 s", "5 s, catching up only 5 % faster than the stream"],
+)
+def test_a_stalled_reader_keeps_the_fit_and_its_batches_stay_on_the_device_clock(
+    stall_s: float, read_cost_ns: float
+) -> None:
+    """The reader stops for a while after a settled minute, then drains the device's backlog
+    in reads that all come seconds late: no restart, times only go forward with no overlap,
+    and the batches, those read late and those after, stay within the settled bound (p99
+    under 10 µs): they are stamped from the device clock, not from when they were read."""
+    clock = DeviceTimeFit(10_000.0)
+    first, end, truth = _run_with_stall(clock, 70.0, stall_s, 60.0, read_cost_ns)
+    assert clock.restarts == 0
+    assert np.all(first[1:] >= end[:-1]), "a batch starts before the one before ended"
+    error = np.abs(first - truth)
+    settled = error[60 * 100 :]  # after the first minute
+    assert np.percentile(settled, 99) < 10_000, np.percentile(settled, [50, 99, 100])
+    after = error[-20 * 100 :]
+    assert np.percentile(after, 99) < 10_000, np.percentile(after, [50, 99, 100])
+
+
+@pytest.mark.parametrize("step_ns", [-2_000_000_000, 2_000_000_000])
+def test_a_host_clock_step_back_or_ahead_is_still_found_with_a_device_clock(
+    step_ns: int,
+) -> None:
+    """The same stream without a stall, the host clock stepped 2 s back or ahead: the fit
+    starts over once (back: at the first read; ahead: once the reads stay up), and the stamps
+    follow the new clock."""
+    clock = DeviceTimeFit(10_000.0)
+    first, _, truth = _run_with_stall(clock, 0.0, 0.0, 100.0, step_ns=step_ns, step_at_s=70.0)
+    assert clock.restarts == 1
+    assert clock.restarted is None, "said once, at the first batch on the new fit"
+    assert np.abs(first[-10 * 100 :] - truth[-10 * 100 :] - step_ns).max() < 1_000_000
+
+
+def test_a_stall_and_a_step_ahead_after_it_are_told_apart() -> None:
+    """The reader stalls 5 s and catches up; later the host clock steps 2 s ahead: the stall
+    leaves the fit alone, the step restarts it, once."""
+    clock = DeviceTimeFit(10_000.0)
+    first, _, truth = _run_with_stall(
+        clock, 70.0, 5.0, 60.0, step_ns=2_000_000_000, step_at_s=100.0
+    )
+    assert clock.restarts == 1
+    assert np.abs(first[-10 * 100 :] - truth[-10 * 100 :] - 2_000_000_000).max() < 1_000_000

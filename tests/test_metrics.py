@@ -204,6 +204,27 @@ def test_each_node_says_when_its_certificate_expires():
     assert b"fleetdaq_certificate_expiry" not in bare
 
 
+def test_each_stream_says_how_many_of_its_polls_came_late():
+    """`fleetdaq_stream_late_polls{node,stream}` from the node's typed health: polls of a polled
+    device read a period or more late (a busy or stopped edge), apart from invalid samples."""
+    from edge.host_metrics import HostMetricsReader
+    from edge.messages import NodeHealth, StreamHealth, TimeSyncStatus
+    from hub.read_model import HubView, NodeView
+
+    tc = StreamHealth("tc", 9, 36, 0, 0, 9, 0, 2.5e8, 0, 8, 0, 0, 0.0, 0, late_polls=7)
+    t8 = StreamHealth("t8", 9, 900, 0, 0, 9, 0, 1e6, 0, 8, 0, 0, 0.0, 0)
+    health = NodeHealth(
+        1, "wec", "0", 1.0, HostMetricsReader({}).read(), (tc, t8), TimeSyncStatus.unknown(), ()
+    )
+    view = HubView(site="prom", time_ns=0, nodes=(NodeView("wec", True, health, 1),))
+    text, _ = render_metrics(view)
+    parsed = {f.name: f for f in text_string_to_metric_families(text.decode())}
+    samples = parsed["fleetdaq_stream_late_polls"].samples
+    assert {s.labels["stream"]: s.value for s in samples} == {"tc": 7, "t8": 0}
+    assert {s.labels["node"] for s in samples} == {"wec"}
+    assert text == reference_metrics(view, _scrape_time(text))
+
+
 def _scrape_time(text: bytes) -> float:
     line = next(x for x in text.decode().splitlines() if x.startswith("fleetdaq_hub_scrape_time"))
     return float(line.split()[-1])

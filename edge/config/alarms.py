@@ -102,7 +102,7 @@ class BacklogLimit(Strict):
 
 
 class StreamAlarm(_Common):
-    """A stream's delivery: stale, slow, gaps, invalid samples, a device backlog."""
+    """A stream's delivery: stale, slow, gaps, invalid samples, a device backlog, late polls."""
 
     stream: Annotated[str, Field(pattern=r"^[^/\s]+/[^/\s]+$")]
     """``node/stream``."""
@@ -115,11 +115,16 @@ class StreamAlarm(_Common):
     invalid_share: Annotated[Float, Field(gt=0, le=1)] | None = None
     """More than this share of the samples invalid (over `window_s`)."""
     backlog: BacklogLimit | None = None
+    late_polls: Annotated[Int, Field(ge=1)] | None = None
+    """At least this many polls of a polled device read late (over `window_s`): the edge's
+    host was too busy or stopped, the readings are good (not a sensor fault)."""
     window_s: Annotated[Float, Field(gt=0, le=3600)] = 10.0
 
     @model_validator(mode="after")
     def _one_condition(self) -> StreamAlarm:
-        _exactly_one(self, ("stale_s", "min_rate_share", "gaps", "invalid_share", "backlog"))
+        _exactly_one(
+            self, ("stale_s", "min_rate_share", "gaps", "invalid_share", "backlog", "late_polls")
+        )
         return self
 
 

@@ -36,6 +36,9 @@ class Block:
     """Device-clock time of the block's last scan (ns, unwrapped), when the device has a
     clock (e.g. the T8's CORE_TIMER); None otherwise."""
     events: tuple[DriverEvent, ...] = ()
+    late_polls: int = 0
+    """Scans of a polled device read a full period or more after they were due (a busy or
+    stopped host): valid readings, read late; counted in the stream's health."""
 
 
 class Driver(Protocol):

@@ -21,10 +21,9 @@ from edge.drivers.labjack_ljm import (
     load_ljm,
     t8_range,
 )
-from edge.drivers.pacing import SYSTEM_TIME, PollPacer, TimeSource
+from edge.drivers.pacing import SYSTEM_TIME, LatePolls, PollPacer, TimeSource
 from edge.errors import DriverError
 from edge.schema import Channel, Float, Int, Resolution, StreamBase
-from edge.wire import SampleStatus
 
 T8_POLL_REGISTER = r"^(AIN[0-7]|FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9])|DAC[01])$"
 
@@ -68,7 +67,7 @@ class LabJackT8Poll:
 
     Each poll reads every channel and CORE_TIMER in one eReadNames, so the device clock times
     polls as it times stream scans. Polls are paced on the host; a poll that could not happen
-    on time becomes an invalid sample instead of a burst.
+    on time is made late (see `PollPacer`), counted as late and timed by when it was due.
     """
 
     def __init__(
@@ -88,6 +87,7 @@ class LabJackT8Poll:
         self._closing = threading.Event()
         self._last_host_ns: int | None = None
         self._events: list[DriverEvent] = []
+        self._lateness = LatePolls()
         self.opens = 0
         self.reconnects = 0
 
@@ -116,44 +116,38 @@ class LabJackT8Poll:
 
     def read(self) -> Block:
         rows = np.full((self.scans, len(self.cfg.channels)), np.nan)
-        status = np.zeros(rows.shape, dtype=np.uint8)
         timer: list[int] = []
-        polled: list[int] = []
         poll_host: list[int] = []
-        i = 0
-        while i < self.scans:
-            missed = self.pacer.next_poll(self._closing)
-            if missed is None or self.dev.handle is None:
+        late, worst, lateness = 0, 0, 0
+        for i in range(self.scans):
+            due = self.pacer.next_poll(self._closing)
+            if due is None or self.dev.handle is None:
                 raise InterruptedError("driver closed")
-            for _ in range(min(missed, self.scans - i)):
-                status[i] = SampleStatus.SKIPPED_SCAN
-                i += 1
-            if i == self.scans:
-                break
+            lateness = due
+            if self.pacer.is_late(lateness):
+                late, worst = late + 1, max(worst, lateness)
             values = self.dev.call("eReadNames", self.dev.handle, len(self.names), self.names)
             poll_host.append(self.clock.time_ns())
             rows[i] = values[:-1]
             timer.append(int(values[-1]))
-            polled.append(i)
-            i += 1
         host_ns = self.clock.time_ns()
-        device_ns = None
-        if timer:
-            # Polls are paced by the host: the expected ticks between them come from host time.
-            hosts = np.asarray(poll_host, dtype=np.float64)
-            previous = self._last_host_ns if self._last_host_ns is not None else poll_host[0]
-            expected = np.diff(hosts, prepend=previous) * (CORE_TIMER_HZ / 1e9)
-            ticks = self.timer.unwrap(np.asarray(timer, dtype=np.int64), expected)
-            period_ticks = self.pacer.period_ns * CORE_TIMER_HZ / 1e9
-            last = int(ticks[-1]) + round((self.scans - 1 - polled[-1]) * period_ticks)
-            device_ns = last * 1_000_000_000 // CORE_TIMER_HZ
-            self._last_host_ns = poll_host[-1]
+        # Polls are paced by the host: the expected ticks between them come from host time.
+        hosts = np.asarray(poll_host, dtype=np.float64)
+        previous = self._last_host_ns if self._last_host_ns is not None else poll_host[0]
+        expected = np.diff(hosts, prepend=previous) * (CORE_TIMER_HZ / 1e9)
+        ticks = self.timer.unwrap(np.asarray(timer, dtype=np.int64), expected)
+        # The last scan's time is when its poll was due: a late poll read the device later.
+        last = int(ticks[-1]) - round(lateness * CORE_TIMER_HZ / 1e9)
+        device_ns = last * 1_000_000_000 // CORE_TIMER_HZ
+        self._last_host_ns = poll_host[-1]
+        if (ev := self._lateness.block(self.dev.where, late, worst)) is not None:
+            self._events.append(ev)
         events, self._events = tuple(self._events), []
-        return Block(rows, host_ns, status if status.any() else None, device_ns, events)
+        return Block(rows, host_ns, None, device_ns, events, late)
 
     def close(self) -> None:
         self._closing.set()
         self.dev.close()
 
     def health(self) -> dict[str, Any]:
-        return {"missed_polls": self.pacer.missed, "reconnects": self.reconnects}
+        return {"late_polls": self.pacer.late, "reconnects": self.reconnects}

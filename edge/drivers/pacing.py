@@ -3,6 +3,7 @@ injectable clocks that let drivers and simulated transports run in virtual time.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Protocol
@@ -10,7 +11,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from edge.drivers.base import Block
+from edge.drivers.base import Block, DriverEvent
 
 
 class DevicePacer:
@@ -149,9 +150,10 @@ class PollPacer:
     """When each poll of a polled device (no device clock) is due, at a fixed rate.
 
     Polls are due at ``start + k / rate`` on the monotonic clock. A poll that could not happen
-    on time (the bus was slow, the host stalled) is not made up in a burst: `next_poll` says how
-    many polls were missed, so the driver can hand them on as invalid samples and scan index
-    keeps meaning time.
+    on time (a busy host, a stopped or paused process, a slow bus) is not skipped: it happens
+    at once, late, and the polls that fell due meanwhile follow it one after another until the
+    schedule is caught up. Scan index keeps meaning time, every scan has a reading, and
+    lateness is told as lateness (`late`), never as a bad sample: the device was never wrong.
     """
 
     def __init__(self, rate_hz: float, clock: TimeSource) -> None:
@@ -159,24 +161,50 @@ class PollPacer:
         self.clock = clock
         self._start = 0
         self._k = 0
-        self.missed = 0
+        self.late = 0
+        """Polls made a full period or more after they were due (the next was due already)."""
 
     def start(self) -> None:
         self._start = self.clock.monotonic_ns()
         self._k = 0
 
     def next_poll(self, cancel: threading.Event) -> int | None:
-        """Wait for the next due poll; return how many polls were missed before it (None if
-        cancelled)."""
+        """Wait for the next due poll; return how late it is (ns; 0 when on time), None if
+        cancelled. A poll late by a full period or more counts in `late`."""
         due = self._start + round(self._k * self.period_ns)
-        missed = 0
-        late = self.clock.monotonic_ns() - due
-        if late >= self.period_ns:
-            missed = int(late // self.period_ns)
-            self._k += missed
-            due = self._start + round(self._k * self.period_ns)
         if not self.clock.sleep_until(due, cancel):
             return None
         self._k += 1
-        self.missed += missed
-        return missed
+        late = max(0, self.clock.monotonic_ns() - due)
+        if late >= self.period_ns:
+            self.late += 1
+        return late
+
+    def is_late(self, late_ns: int) -> bool:
+        """Whether a poll `late_ns` behind its time counts as late (a full period or more)."""
+        return late_ns >= self.period_ns
+
+
+class LatePolls:
+    """A polled device's lateness as events: one when polls start coming late, one when they
+    are on time again (not one per block), and the count in health."""
+
+    def __init__(self) -> None:
+        self._late = False
+
+    def block(self, where: str, late: int, worst_ns: int) -> DriverEvent | None:
+        """After a block with `late` polls late, the worst by `worst_ns`: the event, if any."""
+        if late and not self._late:
+            self._late = True
+            return DriverEvent(
+                logging.WARNING,
+                "polls_late",
+                f"{where}: {late} poll(s) came late, up to {worst_ns / 1e9:.3f} s (the host was "
+                "busy or stopped): each was read when it could be, none skipped; not a sensor "
+                "fault",
+                (("late_polls", str(late)), ("worst_late_ns", str(worst_ns))),
+            )
+        if not late and self._late:
+            self._late = False
+            return DriverEvent(logging.INFO, "polls_on_time", f"{where}: polls on time again")
+        return None

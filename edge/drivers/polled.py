@@ -1,8 +1,9 @@
 """Shared behaviour of slow polled devices (thermocouple converters on SPI, sensors on I2C).
 
 A subclass opens its bus in `connect` and reads one scan in `poll`; this class paces polls on
-the host clock, assembles blocks, marks polls that could not happen on time as skipped, and
-turns a device's fault state into events when it changes (not on every poll).
+the host clock, assembles blocks, counts polls that could not happen on time as late (read late,
+never skipped or marked invalid: a busy host is not a broken sensor), and turns a device's fault
+state and its lateness into events when they change (not on every poll).
 """
 
 from __future__ import annotations
@@ -15,8 +16,7 @@ from typing import Any
 import numpy as np
 
 from edge.drivers.base import Block, DriverEvent
-from edge.drivers.pacing import PollPacer, TimeSource
-from edge.wire import SampleStatus
+from edge.drivers.pacing import LatePolls, PollPacer, TimeSource
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +46,7 @@ class PolledDriver:
         self.opens = 0
         self._problem: str | None = None
         self._events: list[DriverEvent] = []
+        self._lateness = LatePolls()
 
     # -- subclasses ------------------------------------------------------------------------
 
@@ -78,29 +79,23 @@ class PolledDriver:
     def read(self) -> Block:
         raw = np.zeros((self.scans, self.channels))
         status = np.zeros(raw.shape, dtype=np.uint8)
-        i = 0
-        while i < self.scans:
-            missed = self.pacer.next_poll(self.closing)
-            if missed is None:
+        late, worst = 0, 0
+        for i in range(self.scans):
+            lateness = self.pacer.next_poll(self.closing)
+            if lateness is None:
                 raise InterruptedError("driver closed")
-            if missed:
-                self.event(
-                    logging.WARNING,
-                    "missed_polls",
-                    f"{self.where}: {missed} poll(s) missed their time; marked invalid",
-                )
-            for _ in range(min(missed, self.scans - i)):
-                status[i] = SampleStatus.SKIPPED_SCAN
-                i += 1
-            if i == self.scans:
-                break
+            if self.pacer.is_late(lateness):
+                late, worst = late + 1, max(worst, lateness)
             result = self.poll()
             raw[i] = result.values
             status[i] = result.status
             self._note(result.problem, result.detail)
-            i += 1
+        if (ev := self._lateness.block(self.where, late, worst)) is not None:
+            self._events.append(ev)
         events, self._events = tuple(self._events), []
-        return Block(raw, self.clock.time_ns(), status if status.any() else None, None, events)
+        return Block(
+            raw, self.clock.time_ns(), status if status.any() else None, None, events, late
+        )
 
     def close(self) -> None:
         self.closing.set()
@@ -109,7 +104,7 @@ class PolledDriver:
     def health(self) -> dict[str, Any]:
         return {
             "faulty_polls": self.faulty_polls,
-            "missed_polls": self.pacer.missed,
+            "late_polls": self.pacer.late,
             "fault": self._problem or "",
             **self.extra_health(),
         }

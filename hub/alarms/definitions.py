@@ -25,8 +25,9 @@ class AlarmDef:
     """"channel", "stream", "node" or "hub"."""
     check: str
     """What is checked: "above", "below", "fault" (channel); "stale", "rate", "gaps",
-    "invalid", "backlog" (stream); "down", "cpu", "memory", "disk", "temperature", "spool",
-    "unacked_age", "clock_unlocked", "offset", "certificate" (node); "hub_disk", "write_errors",
+    "invalid", "backlog", "late_polls" (stream); "down", "cpu", "memory", "disk",
+    "temperature", "spool", "unacked_age", "clock_unlocked", "offset", "certificate" (node);
+    "hub_disk", "write_errors",
     "notifications_failing", "recorder_stopped", "recorder", "partition_down",
     "partition_disk", "partition_recorder", "certificate_expiring" (hub)."""
     condition: str
@@ -106,6 +107,9 @@ def _stream_alarm(name: str, spec: StreamAlarm) -> AlarmDef:
     elif spec.invalid_share is not None:
         check, threshold = "invalid", spec.invalid_share
         condition = f"more than {spec.invalid_share:.0%} of the samples invalid"
+    elif spec.late_polls is not None:
+        check, threshold = "late_polls", float(spec.late_polls)
+        condition = f"{spec.late_polls} poll(s) or more read late (a busy or stopped edge)"
     elif spec.backlog is not None:
         check, threshold = "backlog", spec.backlog.above
         options["key"] = spec.backlog.key

@@ -322,6 +322,14 @@ class Supervisor:
                 samples = (st.scans - scans0) * channels
                 share = (st.invalid_samples - inv0) / samples if samples > 0 else 0.0
                 return share > d.threshold, share
+            if d.check == "late_polls":
+                window = a.window
+                window.append((health.time_ns, st.late_polls, st.scans))
+                horizon = health.time_ns - round(float(d.options.get("window_s", 10.0)) * 1e9)  # type: ignore[arg-type]
+                while len(window) > 2 and window[1][0] <= horizon:
+                    window.popleft()
+                late = float(st.late_polls - window[0][1])
+                return late >= d.threshold, late
             if d.check == "backlog":
                 raw_value = st.device_value(str(d.options.get("key", "")))
                 try:
