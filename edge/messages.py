@@ -175,8 +175,8 @@ class StreamHealth:
     acks_refused: int
     device: tuple[KeyValue, ...] = ()
     late_polls: int = 0
-    """Polls of a polled device read a full period or more late (a busy or stopped host;
-    read late, not skipped, not invalid)."""
+    """Polls of a polled device the host was too late for (busy or stopped): their slots
+    passed with no scan; nothing made up, nothing marked invalid."""
 
     def device_value(self, key: str) -> str | None:
         return next((kv.value for kv in self.device if kv.key == key), None)

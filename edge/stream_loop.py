@@ -213,7 +213,9 @@ class StreamLoop:
                 bad = block.status != 0
                 values[bad] = np.nan
                 c.invalid_samples += int(bad.sum())
+            # Slots a polled device was not polled in (a late host): no scans, time moves on.
             c.late_polls += block.late_polls
+            index += block.late_polls
             for hook in self.batch_hooks:
                 self._run_hook(hook, values)
             self.latest = values[-1].copy()  # `values` is reused by the next batch

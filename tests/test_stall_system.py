@@ -3,8 +3,9 @@ streaming the simulated T8 and a simulated thermocouple as separate OS processes
 Zenoh on loopback. The edge is stopped (SIGSTOP) for 5 s while the T8 goes on scanning into
 LJM's buffer, then continued: it drains the backlog in reads that all come seconds late.
 Nothing is lost, the recorded times only go forward, the device-time fit does not restart, the
-sample times stay on the simulator's clock; the thermocouple's polls that fell due meanwhile are
-read late and counted as late, not marked invalid, and its sensor-fault alarm stays quiet."""
+sample times stay on the simulator's clock; the thermocouple's polls that fell due meanwhile were
+never made: its stream has no scans for the stop (none made up, none marked invalid), they are
+counted as late polls, and its sensor-fault alarm stays quiet."""
 
 from __future__ import annotations
 
@@ -148,16 +149,24 @@ def test_a_thermocouple_on_the_stopped_edge_counts_late_polls_and_raises_no_sens
     stalled: Stalled,
 ) -> None:
     s = fr.read_stream(stalled.data, "wec/tc")
-    assert s.gaps == (), s.gaps
+    # The stop is a stretch without scans, told as one: no batch missing, nothing filled in.
+    (gap,) = s.gaps
+    assert (gap.kind, gap.missing_batches) == ("acquisition", 0), gap
+    assert gap.start_ns < stalled.stopped_ns + 1e9
+    assert gap.end_ns > stalled.continued_ns - 1e9
     assert not np.isnan(s.data).any(), "a late poll marked invalid"
     assert np.all(np.diff(s.time_ns) > 0)
+    # No reading stamped inside the stop: one taken after it is not the value at a time gone.
+    inside = (s.time_ns > stalled.stopped_ns + 3e8) & (s.time_ns < stalled.continued_ns - 3e8)
+    assert not inside.any(), (s.time_ns[inside] - stalled.stopped_ns) / 1e9
+    assert s.time_ns[0] < stalled.stopped_ns < stalled.continued_ns < s.time_ns[-1]
     events = [e for e in fr.read_events(stalled.data) if e.node == "wec" and e.source == "tc"]
     tags = [e.tag for e in events]
     assert "polls_late" in tags, tags
     assert not any("fault" in t for t in tags), tags
     health = [h.stream("tc") for h in fr.read_health(stalled.data, "wec")]
     late = max(h.late_polls for h in health if h is not None)
-    assert late >= 15, late  # 20 polls fell due in the 5 s
+    assert late >= 15, late  # 20 polls fell due in the 5 s: none made
     assert max(h.invalid_samples for h in health if h is not None) == 0
     alarms = fr.read_alarms(stalled.data)
     fault = [a for a in alarms if a.name == "substrate_hot.fault"]

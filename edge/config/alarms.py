@@ -116,8 +116,8 @@ class StreamAlarm(_Common):
     """More than this share of the samples invalid (over `window_s`)."""
     backlog: BacklogLimit | None = None
     late_polls: Annotated[Int, Field(ge=1)] | None = None
-    """At least this many polls of a polled device read late (over `window_s`): the edge's
-    host was too busy or stopped, the readings are good (not a sensor fault)."""
+    """At least this many polls of a polled device not made on time (over `window_s`): the
+    edge's host was too busy or stopped (not a sensor fault; no scans for those slots)."""
     window_s: Annotated[Float, Field(gt=0, le=3600)] = 10.0
 
     @model_validator(mode="after")

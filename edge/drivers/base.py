@@ -37,8 +37,10 @@ class Block:
     clock (e.g. the T8's CORE_TIMER); None otherwise."""
     events: tuple[DriverEvent, ...] = ()
     late_polls: int = 0
-    """Scans of a polled device read a full period or more after they were due (a busy or
-    stopped host): valid readings, read late; counted in the stream's health."""
+    """Poll slots, right before this block's first scan, that the host was too late to poll
+    (busy or stopped): no reading exists for them and none is made up. The stream's scan
+    index (its time) moves on by this many before this block, so its first scan keeps the
+    time it was polled at; counted in the stream's health as late polls."""
 
 
 class Driver(Protocol):

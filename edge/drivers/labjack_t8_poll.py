@@ -66,8 +66,8 @@ class LabJackT8Poll:
     """Slow command-response reads of a T8 (AIN volts, DIO states): `labjack_t8_poll`.
 
     Each poll reads every channel and CORE_TIMER in one eReadNames, so the device clock times
-    polls as it times stream scans. Polls are paced on the host; a poll that could not happen
-    on time is made late (see `PollPacer`), counted as late and timed by when it was due.
+    polls as it times stream scans. Polls are paced on the host; slots the host was too late
+    for pass unpolled and are counted as late (see `PollPacer`): nothing is made up for them.
     """
 
     def __init__(
@@ -88,6 +88,10 @@ class LabJackT8Poll:
         self._last_host_ns: int | None = None
         self._events: list[DriverEvent] = []
         self._lateness = LatePolls()
+        self._carried: tuple[list[float], int] | None = None
+        """A poll made after a stretch without polls (its values and host time): the next
+        block's first scan."""
+        self._late_before = (0, 0)
         self.opens = 0
         self.reconnects = 0
 
@@ -112,38 +116,50 @@ class LabJackT8Poll:
                 DriverEvent(logging.INFO, "reconnected", f"{self.dev.where}: polling again")
             )
         self.opens += 1
+        self._carried, self._late_before = None, (0, 0)
         self.pacer.start()
 
     def read(self) -> Block:
+        """The next block of polls; it ends early when the host was too late for the next
+        slots, as a polled driver's does (`edge.drivers.polled.PolledDriver.read`)."""
         rows = np.full((self.scans, len(self.cfg.channels)), np.nan)
         timer: list[int] = []
         poll_host: list[int] = []
-        late, worst, lateness = 0, 0, 0
-        for i in range(self.scans):
+        late, late_ns = self._late_before
+        self._late_before = (0, 0)
+        if self._carried is not None:
+            (values, host), self._carried = self._carried, None
+            rows[0] = values[:-1]
+            timer.append(int(values[-1]))
+            poll_host.append(host)
+        while len(timer) < self.scans:
             due = self.pacer.next_poll(self._closing)
             if due is None or self.dev.handle is None:
                 raise InterruptedError("driver closed")
-            lateness = due
-            if self.pacer.is_late(lateness):
-                late, worst = late + 1, max(worst, lateness)
+            passed, overdue = due
             values = self.dev.call("eReadNames", self.dev.handle, len(self.names), self.names)
-            poll_host.append(self.clock.time_ns())
-            rows[i] = values[:-1]
+            if passed and timer:
+                # Made after a stretch without polls: it starts the next block.
+                self._carried = (values, self.clock.time_ns())
+                self._late_before = (passed, overdue)
+                break
+            if passed:
+                late, late_ns = passed, overdue
+            rows[len(timer)] = values[:-1]
             timer.append(int(values[-1]))
-        host_ns = self.clock.time_ns()
+            poll_host.append(self.clock.time_ns())
+        n = len(timer)
         # Polls are paced by the host: the expected ticks between them come from host time.
         hosts = np.asarray(poll_host, dtype=np.float64)
         previous = self._last_host_ns if self._last_host_ns is not None else poll_host[0]
         expected = np.diff(hosts, prepend=previous) * (CORE_TIMER_HZ / 1e9)
         ticks = self.timer.unwrap(np.asarray(timer, dtype=np.int64), expected)
-        # The last scan's time is when its poll was due: a late poll read the device later.
-        last = int(ticks[-1]) - round(lateness * CORE_TIMER_HZ / 1e9)
-        device_ns = last * 1_000_000_000 // CORE_TIMER_HZ
+        device_ns = int(ticks[-1]) * 1_000_000_000 // CORE_TIMER_HZ
         self._last_host_ns = poll_host[-1]
-        if (ev := self._lateness.block(self.dev.where, late, worst)) is not None:
+        if (ev := self._lateness.block(self.dev.where, late, late_ns)) is not None:
             self._events.append(ev)
         events, self._events = tuple(self._events), []
-        return Block(rows, host_ns, None, device_ns, events, late)
+        return Block(rows[:n], poll_host[-1], None, device_ns, events, late)
 
     def close(self) -> None:
         self._closing.set()

@@ -147,13 +147,17 @@ class VirtualTime:
 
 
 class PollPacer:
-    """When each poll of a polled device (no device clock) is due, at a fixed rate.
+    """When each poll of a polled device is due, at a fixed rate.
 
-    Polls are due at ``start + k / rate`` on the monotonic clock. A poll that could not happen
-    on time (a busy host, a stopped or paused process, a slow bus) is not skipped: it happens
-    at once, late, and the polls that fell due meanwhile follow it one after another until the
-    schedule is caught up. Scan index keeps meaning time, every scan has a reading, and
-    lateness is told as lateness (`late`), never as a bad sample: the device was never wrong.
+    Polls are due at ``start + k / rate`` on the monotonic clock. A poll the host could not
+    make on time (a busy host, a stopped or paused process, a slow bus) is late: the slots
+    that passed meanwhile are not polled, and nothing is made up for them. A reading taken
+    now is not the value at a time already gone, so it is never stamped with one: the next
+    poll waits for the next slot (less than a period away) and is stamped with it, as every
+    poll is. `next_poll` says how many slots passed; the driver ends its block before them
+    and the stream's scan index (its time) moves on by that many (`Block.late_polls`): a
+    stretch without scans, never an invalid sample and never a sensor fault. A poll late by
+    less than a period (scheduling jitter) is made at once, in its own slot.
     """
 
     def __init__(self, rate_hz: float, clock: TimeSource) -> None:
@@ -162,27 +166,31 @@ class PollPacer:
         self._start = 0
         self._k = 0
         self.late = 0
-        """Polls made a full period or more after they were due (the next was due already)."""
+        """Polls the host was too late for (their slots passed unpolled), since the start."""
 
     def start(self) -> None:
         self._start = self.clock.monotonic_ns()
         self._k = 0
 
-    def next_poll(self, cancel: threading.Event) -> int | None:
-        """Wait for the next due poll; return how late it is (ns; 0 when on time), None if
-        cancelled. A poll late by a full period or more counts in `late`."""
-        due = self._start + round(self._k * self.period_ns)
-        if not self.clock.sleep_until(due, cancel):
-            return None
+    def next_poll(self, cancel: threading.Event) -> tuple[int, int] | None:
+        """Wait for the next poll; return (slots passed unpolled before it, how late the
+        first of them was in ns), (0, 0) when on time; None if cancelled. Lateness is looked
+        at after the wait too: a host stopped while it waited wakes past its slot."""
+        passed, overdue = 0, 0
+        while True:
+            due = self._start + round(self._k * self.period_ns)
+            if not self.clock.sleep_until(due, cancel):
+                return None
+            lateness = self.clock.monotonic_ns() - due
+            if lateness < self.period_ns:
+                break
+            skip = -int(-lateness // self.period_ns)  # up to the first slot not yet gone
+            overdue = overdue or lateness
+            passed += skip
+            self._k += skip
+        self.late += passed
         self._k += 1
-        late = max(0, self.clock.monotonic_ns() - due)
-        if late >= self.period_ns:
-            self.late += 1
-        return late
-
-    def is_late(self, late_ns: int) -> bool:
-        """Whether a poll `late_ns` behind its time counts as late (a full period or more)."""
-        return late_ns >= self.period_ns
+        return passed, overdue
 
 
 class LatePolls:
@@ -193,16 +201,17 @@ class LatePolls:
         self._late = False
 
     def block(self, where: str, late: int, worst_ns: int) -> DriverEvent | None:
-        """After a block with `late` polls late, the worst by `worst_ns`: the event, if any."""
+        """After a block with `late` polls passed unpolled before it, the first of them
+        `worst_ns` overdue when the host came back: the event, if any."""
         if late and not self._late:
             self._late = True
             return DriverEvent(
                 logging.WARNING,
                 "polls_late",
-                f"{where}: {late} poll(s) came late, up to {worst_ns / 1e9:.3f} s (the host was "
-                "busy or stopped): each was read when it could be, none skipped; not a sensor "
-                "fault",
-                (("late_polls", str(late)), ("worst_late_ns", str(worst_ns))),
+                f"{where}: {late} poll(s) not made on time (the host was busy or stopped "
+                f"{worst_ns / 1e9:.3f} s past the first): no readings for that stretch and "
+                "none made up; polling goes on from the next slot; not a sensor fault",
+                (("late_polls", str(late)), ("late_ns", str(worst_ns))),
             )
         if not late and self._late:
             self._late = False

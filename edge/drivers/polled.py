@@ -1,9 +1,10 @@
 """Shared behaviour of slow polled devices (thermocouple converters on SPI, sensors on I2C).
 
 A subclass opens its bus in `connect` and reads one scan in `poll`; this class paces polls on
-the host clock, assembles blocks, counts polls that could not happen on time as late (read late,
-never skipped or marked invalid: a busy host is not a broken sensor), and turns a device's fault
-state and its lateness into events when they change (not on every poll).
+the host clock, assembles blocks, counts polls the host could not make on time as late (their
+slots pass without scans: nothing is made up, nothing marked invalid, and a busy host is not a
+broken sensor), and turns a device's fault state and its lateness into events when they change
+(not on every poll).
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ class PolledDriver:
         self._problem: str | None = None
         self._events: list[DriverEvent] = []
         self._lateness = LatePolls()
+        self._carried: tuple[Poll, int] | None = None
+        """A poll made after a stretch without polls, with its host time: the next block's
+        first scan."""
+        self._late_before = (0, 0)
+        """(slots passed unpolled, how late) before the carried poll."""
 
     # -- subclasses ------------------------------------------------------------------------
 
@@ -74,28 +80,45 @@ class PolledDriver:
         if self.opens:
             self.event(logging.INFO, "reconnected", f"{self.where}: reading again")
         self.opens += 1
+        self._carried, self._late_before = None, (0, 0)
         self.pacer.start()
 
     def read(self) -> Block:
+        """The next block of polls. A block ends early, with its last poll made on time,
+        when the host was too late for the next slots (see `PollPacer`): the poll made after
+        them starts the next block, whose `late_polls` says how many slots passed unpolled."""
         raw = np.zeros((self.scans, self.channels))
         status = np.zeros(raw.shape, dtype=np.uint8)
-        late, worst = 0, 0
-        for i in range(self.scans):
-            lateness = self.pacer.next_poll(self.closing)
-            if lateness is None:
+        late, late_ns = self._late_before
+        self._late_before = (0, 0)
+        host_ns = 0
+        i = 0
+        if self._carried is not None:
+            (result, host_ns), self._carried = self._carried, None
+            raw[0], status[0] = result.values, result.status
+            i = 1
+        while i < self.scans:
+            due = self.pacer.next_poll(self.closing)
+            if due is None:
                 raise InterruptedError("driver closed")
-            if self.pacer.is_late(lateness):
-                late, worst = late + 1, max(worst, lateness)
+            passed, overdue = due
             result = self.poll()
-            raw[i] = result.values
-            status[i] = result.status
             self._note(result.problem, result.detail)
-        if (ev := self._lateness.block(self.where, late, worst)) is not None:
+            if passed and i:
+                # Made after a stretch without polls: it starts the next block.
+                self._carried = (result, self.clock.time_ns())
+                self._late_before = (passed, overdue)
+                break
+            if passed:
+                late, late_ns = passed, overdue
+            raw[i], status[i] = result.values, result.status
+            host_ns = self.clock.time_ns()
+            i += 1
+        if (ev := self._lateness.block(self.where, late, late_ns)) is not None:
             self._events.append(ev)
         events, self._events = tuple(self._events), []
-        return Block(
-            raw, self.clock.time_ns(), status if status.any() else None, None, events, late
-        )
+        status = status[:i]
+        return Block(raw[:i], host_ns, status if status.any() else None, None, events, late)
 
     def close(self) -> None:
         self.closing.set()

@@ -109,7 +109,7 @@ def _stream_alarm(name: str, spec: StreamAlarm) -> AlarmDef:
         condition = f"more than {spec.invalid_share:.0%} of the samples invalid"
     elif spec.late_polls is not None:
         check, threshold = "late_polls", float(spec.late_polls)
-        condition = f"{spec.late_polls} poll(s) or more read late (a busy or stopped edge)"
+        condition = f"{spec.late_polls} poll(s) or more not made on time (a busy or stopped edge)"
     elif spec.backlog is not None:
         check, threshold = "backlog", spec.backlog.above
         options["key"] = spec.backlog.key
