@@ -38,8 +38,9 @@ def _serve(args: argparse.Namespace) -> None:
     from edge import __version__
     from edge.cdr import decode, encode
     from edge.errors import WireError
-    from edge.keys import SiteKeys
+    from edge.keys import EVENTS_STREAM, SiteKeys
     from edge.messages import Event, HubHeartbeat, NodeHealth, OutputCommand, OutputReply
+    from edge.wire import decode_event_mark, encode_mark
     from edge.zenoh_session import router_config
 
     keys = SiteKeys(args.site)
@@ -51,12 +52,24 @@ def _serve(args: argparse.Namespace) -> None:
     events: list[dict[str, Any]] = []
     health: dict[str, Any] = {}
 
+    taken: dict[int, int] = {}  # a spool's epoch -> the next sequence this double takes
+
     def on_event(sample: Any) -> None:
         try:
             ev = decode(sample.payload.to_bytes(), Event)
         except WireError:
             return
+        att = sample.attachment
+        mark = decode_event_mark(att.to_bytes()) if att is not None else None
         with lock:
+            if mark is not None:
+                # As the hub does: each spooled event once, in order, acked once taken (a
+                # replay of what an earlier double took, or of what is ahead of a hole, is not).
+                seq, floor, epoch = mark
+                if seq != taken.get(epoch, floor):
+                    return
+                taken[epoch] = seq + 1
+                session.put(keys.ack(args.node, EVENTS_STREAM), encode_mark(seq, epoch))
             events.append(
                 {
                     "time_ns": ev.time_ns,
