@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck imports bench clean wheelhouse
+.PHONY: demo test lint typecheck imports bench clean wheelhouse readers
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -25,7 +25,20 @@ typecheck: $(STAMP)
 imports: $(STAMP)
 	$(VENV)/bin/lint-imports
 
-test: lint typecheck imports
+# Readers nobody on this project wrote (tests/readers): their own venv, never the project's,
+# and the npm Foxglove client. Unpinned, so a release that breaks compatibility fails a test.
+READERS := .venv-readers
+$(READERS)/.installed: tests/readers/requirements.txt
+	test -x $(READERS)/bin/python || $(PYTHON) -m venv $(READERS)
+	$(READERS)/bin/python -m pip install --quiet --upgrade pip
+	$(READERS)/bin/python -m pip install --quiet -r tests/readers/requirements.txt
+	touch $@
+tests/readers/node/node_modules/.installed: tests/readers/node/package.json
+	cd tests/readers/node && npm install --no-audit --no-fund --silent
+	touch $@
+readers: $(READERS)/.installed tests/readers/node/node_modules/.installed
+
+test: lint typecheck imports readers
 	$(PY) -m pytest -q --durations=15 -n 2
 
 # What ansible/site.yml installs on every host (README "Deploying a site"): fleetdaq's wheel and
@@ -60,4 +73,4 @@ bench: $(STAMP)
 	$(PY) bench/fanin.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) $(READERS) tests/readers/node/node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache
