@@ -71,6 +71,7 @@ bench: $(STAMP)
 	$(PY) bench/dashboard.py
 	$(PY) bench/web_floor.py
 	$(PY) bench/fanin.py
+	$(PY) bench/router_log.py
 
 clean:
 	rm -rf $(VENV) $(READERS) tests/readers/node/node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache
