@@ -54,8 +54,10 @@ def site(tmp_path: Path) -> Path:
 
 
 def test_demo_runs_unattended_and_prints_a_json_summary(site: Path, tmp_path: Path):
+    # 10 s: on a loaded 2-core CI an edge's start (imports, first open) took over 5 s, and a
+    # 5 s demo ended before its first batch.
     r = _fleetdaq(
-        "demo", "--config", str(site), "--duration", "5", "--data", str(tmp_path / "rec"), "--json"
+        "demo", "--config", str(site), "--duration", "10", "--data", str(tmp_path / "rec"), "--json"
     )
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads(r.stdout)
