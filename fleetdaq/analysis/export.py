@@ -163,9 +163,9 @@ def plan_export(
         found.update(keep)
         if keep:
             chosen.append((info, keep))
-    for info, keep in chosen:
-        names = keep or recording.layout(info.topic)[0]
-        taken = [c for c in names if c in RESERVED_NAMES[fmt]]
+    for info, kept in chosen:
+        exported = kept or recording.layout(info.topic)[0]
+        taken = [c for c in exported if c in RESERVED_NAMES[fmt]]
         if taken:
             others = [f for f in FORMATS if taken[0] not in RESERVED_NAMES[f]]
             raise AnalysisError(

@@ -105,19 +105,12 @@ def test_parquet_is_channel_partitioned_with_a_utc_time_column(session, tmp_path
 
 
 def test_every_parquet_file_has_every_streams_columns_so_one_read_drops_nothing(
-    session, tmp_path: Path
-):  # type: ignore[no-untyped-def]
+    session: tuple[Path, list[Batch], list[Batch]], tmp_path: Path
+) -> None:
     folder, t8, env = session
     out = tmp_path / "pq"
     run_export(plan_export(Recording(folder), "parquet", out))
-    schemas = {pq.read_schema(f).remove_metadata() for f in out.rglob("*.parquet")}
-    assert len(schemas) == 1
     everything = pd.read_parquet(out)  # every stream at once, `channel` from the folder names
-    assert everything.attrs["units"] == {
-        **dict(zip(CHANNELS, UNITS, strict=True)),
-        "air_temperature": "degC",
-        "humidity": "%RH",
-    }
     shore = everything[everything["channel"] == "shore_env"].sort_index()
     t, data = _expected(env)
     assert np.array_equal(shore.index.asi8, t)
@@ -128,6 +121,13 @@ def test_every_parquet_file_has_every_streams_columns_so_one_read_drops_nothing(
     data[305, 1] = np.nan
     assert np.array_equal(wec.index.asi8, t)
     assert np.array_equal(wec[list(CHANNELS)].to_numpy(), data, equal_nan=True)
+    assert everything.attrs["units"] == {
+        **dict(zip(CHANNELS, UNITS, strict=True)),
+        "air_temperature": "degC",
+        "humidity": "%RH",
+    }
+    schemas = {pq.read_schema(f).remove_metadata() for f in out.rglob("*.parquet")}
+    assert len(schemas) == 1
 
 
 def test_a_channel_named_like_a_column_of_the_format_is_refused_naming_it(tmp_path: Path):
