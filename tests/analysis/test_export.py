@@ -237,3 +237,40 @@ def test_bad_input_exits_2_with_one_line(session, tmp_path: Path, args, says):  
     assert len(lines) == 1, r.stderr
     assert says in lines[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_a_parquet_export_over_an_earlier_ones_metadata_is_refused_without_force(
+    session: tuple[Path, list[Batch], list[Batch]], tmp_path: Path
+) -> None:
+    folder, _, _ = session
+    (tmp_path / "pq.fleetdaq").mkdir()
+    (tmp_path / "pq.fleetdaq" / "summary.json").write_text("{}\n")
+    r = _fleetdaq("export", str(folder), "--to", "parquet", "-o", str(tmp_path / "pq"), "-q")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (
+        f"{tmp_path / 'pq.fleetdaq'}: exists already (choose another -o, or --force to write"
+        " into it)"
+    )
+    assert not (tmp_path / "pq").exists()
+    r = _fleetdaq(
+        "export", str(folder), "--to", "parquet", "-o", str(tmp_path / "pq"), "-q", "--force"
+    )
+    assert r.returncode == 0, r.stderr
+    assert (
+        json.loads((tmp_path / "pq.fleetdaq" / "summary.json").read_text())["format"] == "parquet"
+    )
+
+
+def test_a_channel_name_two_streams_share_keeps_each_streams_unit(tmp_path: Path) -> None:
+    wave = make_batches(10, scans=1, rate_hz=10.0, seed=3, channels=2)
+    extra = stream_messages(wave, "buoy", "wave", ("heave", "period"), ("cm", "s"))
+    s = write_session(tmp_path / "rec", make_batches(10), extra=extra)
+    out = tmp_path / "pq"
+    run_export(plan_export(Recording(s.dir), "parquet", out))
+    df = pd.read_parquet(out)
+    assert df.attrs["streams"]["wec_t8"]["heave"] == "m"
+    assert df.attrs["streams"]["buoy_wave"]["heave"] == "cm"
+    assert "heave" not in df.attrs["units"]  # no one unit for the column
+    assert pq.read_schema(next(out.rglob("*.parquet"))).field("heave").metadata is None
+    buoy = df[df["channel"] == "buoy_wave"].sort_index()
+    assert np.array_equal(buoy["heave"].to_numpy(), _expected(wave)[1][:, 0])
