@@ -5,15 +5,22 @@ whatever the recording's size.
 Layouts:
 
 - **parquet**: ``OUT/channel=<node>_<stream>/<mcap file>.<node>_<stream>.parquet`` (one per
-  recorded file, hive-partitioned by ``channel`` as MODAQ_toolkit writes them), each with a
-  ``time`` column (timestamp[ns, UTC], pandas' index) and a float64 column per channel, the unit
-  in each field's metadata; ``OUT/_fleetdaq/`` has a JSON file per stream and
-  ``summary.json`` (units, rate, gaps, sessions; hidden from ``pd.read_parquet(OUT)``).
-- **hdf5** (h5py): one file; a group per stream ``/<node>/<stream>`` holding ``time_ns`` (int64
-  UTC ns), a dataset per channel (``units`` attribute) and ``status`` (sample codes, when any
-  sample was invalid); session metadata and the site config as attributes.
-- **csv**: ``OUT/<node>_<stream>.csv`` (``time`` ISO 8601 UTC, ``time_ns``, a column per
-  channel) and the same ``OUT/_fleetdaq/``.
+  recorded file, hive-partitioned by ``channel`` as MODAQ_toolkit writes them). Every file has
+  the same schema: a ``time`` column (timestamp[ns, UTC], pandas' index) and a float64 column
+  for every channel of every exported stream (null in the other streams' files), so each
+  reader's one call over ``OUT`` reads every stream whole, ``channel`` saying which (a reader
+  that takes the first file's schema drops nothing). Units in each field's metadata, in the
+  ``fleetdaq`` key of the file's metadata and in the pandas metadata (``df.attrs``). The
+  per-stream JSON and ``summary.json`` go beside, in ``OUT.fleetdaq/``: nothing but Parquet
+  inside the dataset folder.
+- **hdf5** (h5py, netCDF-4 compatible): one file; a group per stream ``/<node>/<stream>``
+  holding ``time`` (int64 UTC ns, a dimension scale with CF units, so
+  ``xr.open_dataset(f, engine="h5netcdf", group="wec/t8")`` decodes it), a dataset per channel
+  (``units`` attribute) and ``status`` (sample codes on ``time`` x ``channel``, when any sample
+  was invalid); session metadata and the site config as attributes.
+- **csv**: ``OUT/<node>_<stream>.csv`` (``time`` ISO 8601 UTC with ``T`` and ``Z``,
+  ``time_ns``, a column per channel; an invalid sample is an empty field) and
+  ``OUT/_fleetdaq/``.
 - **netcdf** (h5netcdf): ``OUT/<node>_<stream>.nc``, CF-style: ``time`` (ns since the epoch,
   UTC; xarray decodes it), a variable per channel with ``units``.
 
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +48,18 @@ from fleetdaq.analysis.window import format_ns
 
 FORMATS = ("parquet", "hdf5", "csv", "netcdf")
 METADATA_DIR = "_fleetdaq"
-"""Per-stream JSON and ``summary.json`` of a directory export. The leading underscore keeps it
-out of Parquet dataset discovery: ``pd.read_parquet(OUT)`` reads the data files only."""
+"""Per-stream JSON and ``summary.json`` of a CSV or NetCDF export, inside ``OUT``."""
+PARQUET_METADATA_SUFFIX = ".fleetdaq"
+"""A Parquet export's JSON goes to ``OUT.fleetdaq/``, beside the dataset: readers that list a
+dataset folder (polars, DuckDB globs) would trip on a JSON file inside it."""
+RESERVED_NAMES = {
+    "parquet": ("time", "channel"),
+    "hdf5": ("time", "channel", "status"),
+    "csv": ("time", "time_ns"),
+    "netcdf": ("time",),
+}
+"""Names each format uses beside the channels (the time, the partition column, the status
+codes and their dimension): no channel may take them."""
 PARQUET_ROW_GROUP = 1 << 20
 """Scans per Parquet row group (8 MB per float64 channel)."""
 Progress = Callable[[int], None]
@@ -50,6 +68,14 @@ Progress = Callable[[int], None]
 
 def safe_name(info: StreamInfo) -> str:
     return f"{info.node}_{info.stream}"
+
+
+def metadata_folder(fmt: str, out: Path) -> Path:
+    """Where an export to `out` in `fmt` writes its JSON metadata (none for hdf5)."""
+    if fmt == "parquet":
+        whole = Path(os.path.abspath(out))  # `-o .` has no name of its own
+        return whole.with_name(whole.name + PARQUET_METADATA_SUFFIX)
+    return out / METADATA_DIR
 
 
 @dataclass(slots=True)
@@ -137,6 +163,16 @@ def plan_export(
         found.update(keep)
         if keep:
             chosen.append((info, keep))
+    for info, kept in chosen:
+        exported = kept or recording.layout(info.topic)[0]
+        taken = [c for c in exported if c in RESERVED_NAMES[fmt]]
+        if taken:
+            others = [f for f in FORMATS if taken[0] not in RESERVED_NAMES[f]]
+            raise AnalysisError(
+                f"{info.name}: a channel named {taken[0]!r} cannot go to {fmt} (the export's"
+                f" own {taken[0]!r}); export it with --to {' or '.join(others) or 'another'}"
+                " format, or leave it out with --channel"
+            )
     missing = [c for c in channels if c not in found]
     if missing:
         have = sorted({n for info in infos for n in recording.layout(info.topic)[0]})
@@ -240,7 +276,7 @@ def _summary(plan: ExportPlan, exports: list[StreamExport]) -> dict[str, Any]:
 
 
 def _write_metadata(plan: ExportPlan, exports: list[StreamExport]) -> None:
-    folder = plan.out / METADATA_DIR
+    folder = metadata_folder(plan.fmt, plan.out)
     folder.mkdir(parents=True, exist_ok=True)
     summary = _summary(plan, exports)
     for e in exports:
@@ -250,8 +286,47 @@ def _write_metadata(plan: ExportPlan, exports: list[StreamExport]) -> None:
 
 
 class _ParquetWriter:
+    """Every file gets one schema: ``time`` plus the union of the exported streams' channels,
+    so no reader can take one stream's schema for the dataset's and drop the others'."""
+
     def __init__(self, plan: ExportPlan) -> None:
         self.plan = plan
+        self.streams: dict[str, dict[str, str]] = {}
+        for info, keep in plan.streams:
+            names, units = plan.recording.layout(info.topic)
+            unit = dict(zip(names, units, strict=True))
+            chosen = keep or tuple(names)
+            self.streams[safe_name(info)] = {c: unit[c] for c in chosen}
+        self.columns: list[str] = list(dict.fromkeys(c for s in self.streams.values() for c in s))
+        self.schema = self._schema()
+
+    def _schema(self) -> Any:
+        import pandas as pd
+        import pyarrow as pa
+
+        units: dict[str, set[str]] = {c: set() for c in self.columns}
+        for stream in self.streams.values():
+            for c, u in stream.items():
+                units[c].add(u)
+        # one column per channel name: a name two streams share with different units has its
+        # units per stream in the file's metadata only
+        common = {c: next(iter(u)) for c, u in units.items() if len(u) == 1}
+        attrs = {"units": common, "streams": self.streams}
+        frame = pd.DataFrame(
+            {c: pd.Series(dtype="float64") for c in self.columns},
+            index=pd.DatetimeIndex([], dtype="datetime64[ns, UTC]", name="time"),
+        )
+        frame.attrs.update(attrs)
+        schema = pa.Schema.from_pandas(frame)
+        fields = [
+            f.with_metadata({b"unit": common[f.name].encode()})
+            if f.name in common
+            else f.with_metadata({b"timezone": b"UTC"})
+            if f.name == "time"
+            else f
+            for f in schema
+        ]
+        return pa.schema(fields, metadata=schema.metadata)
 
     def begin(self, exp: StreamExport, piece: StreamData) -> None:
         pass
@@ -264,40 +339,33 @@ class _ParquetWriter:
         folder = self.plan.out / f"channel={name}"
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"{source.stem}.{name}.parquet"
-        frame = piece.to_pandas()
-        writer = None
-        try:
-            # Row groups of a bounded size: the columns are copied for Arrow a slice at a time.
-            for at in range(0, len(frame), PARQUET_ROW_GROUP):
-                table = pa.Table.from_pandas(frame.iloc[at : at + PARQUET_ROW_GROUP])
-                table = table.cast(self._schema(exp, piece, table.schema))
-                if writer is None:
-                    writer = pq.ParquetWriter(path, table.schema)
-                writer.write_table(table)
-        finally:
-            if writer is not None:
-                writer.close()
-        exp.files.append(path)
-
-    def _schema(self, exp: StreamExport, piece: StreamData, schema: Any) -> Any:
-        import pyarrow as pa
-
-        fields = [
-            f.with_metadata({b"unit": exp.units[exp.channels.index(f.name)].encode()})
-            if f.name in exp.channels
-            else f.with_metadata({b"timezone": b"UTC"})
-            for f in schema
-        ]
-        meta = dict(schema.metadata or {})
+        meta = dict(self.schema.metadata)
         meta[b"fleetdaq"] = json.dumps(
             {
                 "node": exp.info.node,
                 "stream": exp.info.stream,
-                "units": dict(zip(exp.channels, exp.units, strict=True)),
+                "channel": name,
+                "units": self.streams,
                 "source_files": [str(p) for p in piece.files],
             }
         ).encode()
-        return pa.schema(fields, metadata=meta)
+        schema = self.schema.with_metadata(meta)
+        own = {c: i for i, c in enumerate(exp.channels)}
+        with pq.ParquetWriter(path, schema) as writer:
+            # Row groups of a bounded size: the columns are copied for Arrow a slice at a time.
+            for at in range(0, len(piece), PARQUET_ROW_GROUP):
+                rows = slice(at, at + PARQUET_ROW_GROUP)
+                n = len(piece.time_ns[rows])
+                arrays = [
+                    # NaN (an invalid sample) becomes null: missing to pandas, polars and DuckDB
+                    pa.array(piece.data[rows, own[c]], from_pandas=True)
+                    if c in own
+                    else pa.nulls(n, pa.float64())
+                    for c in self.columns
+                ]
+                arrays.append(pa.array(piece.time_ns[rows]).cast(schema.field("time").type))
+                writer.write_table(pa.Table.from_arrays(arrays, schema=schema))
+        exp.files.append(path)
 
     def end(self, exp: StreamExport) -> None:
         pass
@@ -321,7 +389,7 @@ class _CsvWriter:
         self.plan.out.mkdir(parents=True, exist_ok=True)
         path = self.plan.out / f"{safe_name(exp.info)}.csv"
         schema = pa.schema(
-            [("time", pa.timestamp("ns", tz="UTC")), ("time_ns", pa.int64())]
+            [("time", pa.string()), ("time_ns", pa.int64())]
             + [(c, pa.float64()) for c in exp.channels]
         )
         self.writer = pcsv.CSVWriter(str(path), schema)
@@ -330,14 +398,15 @@ class _CsvWriter:
 
     def piece(self, exp: StreamExport, piece: StreamData, source: Path) -> None:
         import pyarrow as pa
+        import pyarrow.compute as pc
 
-        columns = [
-            pa.array(piece.time_ns, type=pa.timestamp("ns", tz="UTC")),
-            pa.array(piece.time_ns),
-        ]
-        columns += [
-            pa.array(np.ascontiguousarray(piece.data[:, i])) for i in range(len(exp.channels))
-        ]
+        # Arrow writes timestamps with a space; ISO 8601 with "T" is what every CSV reader
+        # parses (``%S`` carries the nanoseconds)
+        naive = pa.array(piece.time_ns).cast(pa.timestamp("ns"))
+        columns = [pc.strftime(naive, format="%Y-%m-%dT%H:%M:%SZ"), pa.array(piece.time_ns)]
+        # An invalid sample (NaN) is written as an empty field, not "nan": readers that infer
+        # types (polars, DuckDB) then keep the column a float
+        columns += [pa.array(piece.data[:, i], from_pandas=True) for i in range(len(exp.channels))]
         self.writer.write_table(pa.Table.from_arrays(columns, schema=self.schema))
 
     def end(self, exp: StreamExport) -> None:
@@ -433,35 +502,52 @@ class _Hdf5Writer:
         g.attrs["topic"] = exp.info.topic
         g.attrs["channels"] = list(exp.channels)
         g.attrs["units"] = list(exp.units)
-        t = g.create_dataset("time_ns", (0,), np.int64, maxshape=(None,), chunks=(1 << 16,))
-        t.attrs["units"] = "ns since 1970-01-01T00:00:00Z (UTC)"
+        # netCDF-4 on HDF5: `time` is a dimension scale with CF units and every variable is
+        # attached to it, so xarray (h5netcdf) names the dimension and decodes the time
+        t = g.create_dataset("time", (0,), np.int64, maxshape=(None,), chunks=(1 << 16,))
+        t.attrs["units"] = "nanoseconds since 1970-01-01 00:00:00"
+        t.attrs["calendar"] = "standard"
+        t.attrs["standard_name"] = "time"
+        t.attrs["long_name"] = "acquisition time (UTC)"
+        t.make_scale("time")
         for c, u in zip(exp.channels, exp.units, strict=True):
             d = g.create_dataset(
                 c, (0,), np.float64, maxshape=(None,), chunks=(1 << 16,), fillvalue=np.nan
             )
             d.attrs["units"] = u
+            d.dims[0].attach_scale(t)
         self.group = g
         self.n = 0
 
     def piece(self, exp: StreamExport, piece: StreamData, source: Path) -> None:
         g = self.group
         n0, n1 = self.n, self.n + len(piece)
-        g["time_ns"].resize((n1,))
-        g["time_ns"][n0:n1] = piece.time_ns
+        g["time"].resize((n1,))
+        g["time"][n0:n1] = piece.time_ns
         for i, c in enumerate(exp.channels):
             g[c].resize((n1,))
             g[c][n0:n1] = piece.data[:, i]
         if piece.status is not None or "status" in g:
             if "status" not in g:
-                width = len(exp.channels)
-                s = g.create_dataset(
-                    "status", (n0, width), np.uint8, maxshape=(None, width), chunks=(8192, width)
-                )
-                s.attrs["meaning"] = "edge.wire.SampleStatus codes, 0 = valid"
+                self._status(exp, n0)
             g["status"].resize((n1, len(exp.channels)))
             if piece.status is not None:
                 g["status"][n0:n1] = piece.status
         self.n = n1
+
+    def _status(self, exp: StreamExport, scans: int) -> None:
+        import h5py
+
+        g = self.group
+        width = len(exp.channels)
+        names = g.create_dataset("channel", data=list(exp.channels), dtype=h5py.string_dtype())
+        names.make_scale("channel")
+        s = g.create_dataset(
+            "status", (scans, width), np.uint8, maxshape=(None, width), chunks=(8192, width)
+        )
+        s.attrs["meaning"] = "edge.wire.SampleStatus codes, 0 = valid"
+        s.dims[0].attach_scale(g["time"])
+        s.dims[1].attach_scale(names)
 
     def end(self, exp: StreamExport) -> None:
         self.group.attrs["sample_rate_hz"] = exp.sample_rate_hz

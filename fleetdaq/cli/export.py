@@ -48,22 +48,24 @@ def export(
     """Export a recording (session folders, a data root or .mcap files) for analysis.
 
     Parquet is channel-partitioned like MODAQ_toolkit's output (OUT/channel=<node>_<stream>/
-    one file per recorded file, a UTC `time` column); HDF5 has a group per stream and a
+    one file per recorded file, a UTC `time` column, every stream's columns in every file so
+    one read of OUT drops nothing; metadata in OUT.fleetdaq/); HDF5 has a group per stream and a
     dataset per channel; CSV and NetCDF a file per stream. Units, rates, gaps and the
     sessions' metadata go with the data. Exit 2 on bad input, with one line saying why.
     """
     from tqdm import tqdm
 
     from fleetdaq.analysis.errors import AnalysisError
-    from fleetdaq.analysis.export import plan_export, run_export
+    from fleetdaq.analysis.export import metadata_folder, plan_export, run_export
     from fleetdaq.analysis.recording import Recording
 
     out = output
     try:
         rec = Recording(list(sources))
         out = output or default_output(rec.sessions()[0].name, fmt)
-        if out.exists() and not force and (out.is_file() or any(out.iterdir())):
-            fail(f"{out}: exists already (choose another -o, or --force to write into it)")
+        for path in (out, metadata_folder(fmt, out)):
+            if path.exists() and not force and (path.is_file() or any(path.iterdir())):
+                fail(f"{path}: exists already (choose another -o, or --force to write into it)")
         plan = plan_export(rec, fmt, out, streams=streams, channels=channels, start=start, end=end)
         with tqdm(
             total=plan.planned_batches,

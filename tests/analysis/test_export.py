@@ -17,6 +17,7 @@ import pytest
 import xarray as xr
 
 from edge.wire import SampleStatus
+from fleetdaq.analysis.errors import AnalysisError
 from fleetdaq.analysis.export import plan_export, run_export
 from fleetdaq.analysis.recording import Recording
 from tests.analysis.recordings import (
@@ -69,7 +70,7 @@ def _fleetdaq(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_parquet_is_channel_partitioned_with_a_utc_time_column(session, tmp_path: Path):  # type: ignore[no-untyped-def]
-    folder, t8, env = session
+    folder, t8, _ = session
     out = tmp_path / "pq"
     r = _fleetdaq("export", str(folder), "--to", "parquet", "-o", str(out))
     assert r.returncode == 0, r.stderr
@@ -88,10 +89,9 @@ def test_parquet_is_channel_partitioned_with_a_utc_time_column(session, tmp_path
     schema = pq.read_schema(next((out / "channel=wec_t8").iterdir()))
     assert schema.field("heave").metadata == {b"unit": b"m"}
     assert schema.field("pitch").metadata == {b"unit": b"deg"}
-    everything = pd.read_parquet(out)  # every stream at once, `channel` from the folder names
-    assert set(everything["channel"].unique()) == {"wec_t8", "shore_env"}
-    assert len(everything) == len(t) + len(env)
-    meta = json.loads((out / "_fleetdaq" / "wec_t8.metadata.json").read_text())
+    # nothing but Parquet in the dataset folder: the JSON goes beside it
+    assert {p.suffix for p in out.rglob("*") if p.is_file()} == {".parquet"}
+    meta = json.loads((tmp_path / "pq.fleetdaq" / "wec_t8.metadata.json").read_text())
     assert meta["units"] == dict(zip(CHANNELS, UNITS, strict=True))
     (gap,) = meta["gaps"]
     assert (gap["kind"], gap["missing_batches"], gap["first_missing_sequence"]) == (
@@ -99,9 +99,46 @@ def test_parquet_is_channel_partitioned_with_a_utc_time_column(session, tmp_path
         1,
         10,
     )
-    summary = json.loads((out / "_fleetdaq" / "summary.json").read_text())
+    summary = json.loads((tmp_path / "pq.fleetdaq" / "summary.json").read_text())
     assert summary["sessions"][0]["name"] == folder.name
     assert summary["sessions"][0]["site"] == "demo"
+
+
+def test_every_parquet_file_has_every_streams_columns_so_one_read_drops_nothing(
+    session: tuple[Path, list[Batch], list[Batch]], tmp_path: Path
+) -> None:
+    folder, t8, env = session
+    out = tmp_path / "pq"
+    run_export(plan_export(Recording(folder), "parquet", out))
+    everything = pd.read_parquet(out)  # every stream at once, `channel` from the folder names
+    shore = everything[everything["channel"] == "shore_env"].sort_index()
+    t, data = _expected(env)
+    assert np.array_equal(shore.index.asi8, t)
+    assert np.array_equal(shore[list(ENV)].to_numpy(), data)
+    assert shore[list(CHANNELS)].isna().all().all()
+    wec = everything[everything["channel"] == "wec_t8"].sort_index()
+    t, data = _expected(t8)
+    data[305, 1] = np.nan
+    assert np.array_equal(wec.index.asi8, t)
+    assert np.array_equal(wec[list(CHANNELS)].to_numpy(), data, equal_nan=True)
+    assert everything.attrs["units"] == {
+        **dict(zip(CHANNELS, UNITS, strict=True)),
+        "air_temperature": "degC",
+        "humidity": "%RH",
+    }
+    schemas = {pq.read_schema(f).remove_metadata() for f in out.rglob("*.parquet")}
+    assert len(schemas) == 1
+
+
+def test_a_channel_named_like_a_column_of_the_format_is_refused_naming_it(tmp_path: Path):
+    s = write_session(tmp_path / "rec", make_batches(3), channels=("heave", "channel", "pitch"))
+    rec = Recording(s.dir)
+    with pytest.raises(
+        AnalysisError, match="wec/t8: a channel named 'channel' cannot go to parquet"
+    ):
+        plan_export(rec, "parquet", tmp_path / "pq")
+    assert plan_export(rec, "csv", tmp_path / "csv").streams
+    assert plan_export(rec, "parquet", tmp_path / "pq", channels=["heave"]).streams
 
 
 def test_hdf5_has_a_group_per_stream_and_a_dataset_per_channel(session, tmp_path: Path):  # type: ignore[no-untyped-def]
@@ -112,7 +149,7 @@ def test_hdf5_has_a_group_per_stream_and_a_dataset_per_channel(session, tmp_path
     with h5py.File(out) as f:
         assert set(f) == {"wec", "shore"}
         g = f["wec/t8"]
-        assert np.array_equal(g["time_ns"][:], t)
+        assert np.array_equal(g["time"][:], t)
         surge = data[:, 1].copy()
         surge[305] = np.nan
         assert np.array_equal(g["surge"][:], surge, equal_nan=True)
@@ -159,8 +196,8 @@ def test_stream_channel_and_window_filters(session, tmp_path: Path):  # type: ig
     keep = (t >= T0 + SEC // 2) & (t < T0 + 5 * SEC // 2)
     with h5py.File(out) as f:
         assert list(f) == ["wec"]
-        assert set(f["wec/t8"]) == {"time_ns", "pitch"}
-        assert np.array_equal(f["wec/t8/time_ns"][:], t[keep])
+        assert set(f["wec/t8"]) == {"time", "pitch"}
+        assert np.array_equal(f["wec/t8/time"][:], t[keep])
         assert np.array_equal(f["wec/t8/pitch"][:], data[keep, 2])
 
 
@@ -177,7 +214,7 @@ def test_replayed_sessions_export_each_batch_once_in_time_order(tmp_path: Path):
     assert exp.duplicates == 5
     t, _ = _expected(first + later[5:])
     with h5py.File(tmp_path / "r.h5") as f:
-        assert np.array_equal(f["wec/t8/time_ns"][:], t)
+        assert np.array_equal(f["wec/t8/time"][:], t)
 
 
 @pytest.mark.parametrize(
@@ -200,3 +237,40 @@ def test_bad_input_exits_2_with_one_line(session, tmp_path: Path, args, says):  
     assert len(lines) == 1, r.stderr
     assert says in lines[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_a_parquet_export_over_an_earlier_ones_metadata_is_refused_without_force(
+    session: tuple[Path, list[Batch], list[Batch]], tmp_path: Path
+) -> None:
+    folder, _, _ = session
+    (tmp_path / "pq.fleetdaq").mkdir()
+    (tmp_path / "pq.fleetdaq" / "summary.json").write_text("{}\n")
+    r = _fleetdaq("export", str(folder), "--to", "parquet", "-o", str(tmp_path / "pq"), "-q")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (
+        f"{tmp_path / 'pq.fleetdaq'}: exists already (choose another -o, or --force to write"
+        " into it)"
+    )
+    assert not (tmp_path / "pq").exists()
+    r = _fleetdaq(
+        "export", str(folder), "--to", "parquet", "-o", str(tmp_path / "pq"), "-q", "--force"
+    )
+    assert r.returncode == 0, r.stderr
+    assert (
+        json.loads((tmp_path / "pq.fleetdaq" / "summary.json").read_text())["format"] == "parquet"
+    )
+
+
+def test_a_channel_name_two_streams_share_keeps_each_streams_unit(tmp_path: Path) -> None:
+    wave = make_batches(10, scans=1, rate_hz=10.0, seed=3, channels=2)
+    extra = stream_messages(wave, "buoy", "wave", ("heave", "period"), ("cm", "s"))
+    s = write_session(tmp_path / "rec", make_batches(10), extra=extra)
+    out = tmp_path / "pq"
+    run_export(plan_export(Recording(s.dir), "parquet", out))
+    df = pd.read_parquet(out)
+    assert df.attrs["streams"]["wec_t8"]["heave"] == "m"
+    assert df.attrs["streams"]["buoy_wave"]["heave"] == "cm"
+    assert "heave" not in df.attrs["units"]  # no one unit for the column
+    assert pq.read_schema(next(out.rglob("*.parquet"))).field("heave").metadata is None
+    buoy = df[df["channel"] == "buoy_wave"].sort_index()
+    assert np.array_equal(buoy["heave"].to_numpy(), _expected(wave)[1][:, 0])
