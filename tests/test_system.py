@@ -40,7 +40,7 @@ nodes:
         rate_hz: 4
         channels: [{{name: substrate, unit: degC}}, {{name: cold_junction, unit: degC}}]
 """
-RATES = {"/wec/t8": 10000.0, "/am-cell/tc": 4.0}
+RATES = {"/wec/t8": 10000.0, "/am_cell/tc": 4.0}  # node am-cell: topics /am_cell/...
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_every_file_is_closed_and_decodes(recording: tuple[Path, list[Proc]]):
 
 def test_sequences_are_contiguous_across_files(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    health = {"/wec/health", "/am-cell/health", "/hub/health"}
+    health = {"/wec/health", "/am_cell/health", "/hub/health"}
     assert set(msgs) == {*RATES, "/events", *health}
     for topic in RATES:
         items = msgs[topic]

@@ -26,6 +26,7 @@ from edge.messages import (
     Event,
     NodeHealth,
 )
+from edge.schema import ros_token
 from edge.wire import BatchHeader, read_header, sample_format_of
 from fleetdaq.analysis.assemble import Assembler
 from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
@@ -106,9 +107,11 @@ class Recording:
         """
         streams = self.streams()
         key = name.strip().strip("/")
-        hits = [s for s in streams if s.name == key]
+        # The site file's name (``am-cell/tc``) finds the topic it is recorded on (``am_cell``).
+        keys = {key, "/".join(ros_token(part) for part in key.split("/"))}
+        hits = [s for s in streams if s.name in keys]
         if not hits and "/" not in key:
-            hits = [s for s in streams if s.stream == key]
+            hits = [s for s in streams if s.stream in keys]
         if len(hits) == 1:
             return hits[0]
         names = ", ".join(s.name for s in streams) or "none"
