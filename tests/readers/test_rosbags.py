@@ -225,7 +225,7 @@ def test_every_topic_recorded_is_a_valid_ros2_name(live: LiveSession, readers: R
 
 def test_the_ros2_name_rules_refuse_what_ros2_refuses(readers: Readers) -> None:
     # The validator above must be able to fail: names `ros2 bag play` would refuse.
-    probe = ROS_NAMES.split("folder = Path")[0] + (
+    probe = ROS_NAMES.split("folder = Path", maxsplit=1)[0] + (
         "print(json.dumps([problem(n) is not None for n in sys.argv[1:]]))"
     )
     names = ["/am-cell/tc", "/am__cell/tc", "/am_cell_/tc", "/1cell/tc", "am_cell/tc", "/a//b"]
