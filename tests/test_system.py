@@ -153,7 +153,7 @@ def test_every_nodes_typed_health_is_in_the_recording_about_once_a_second(
 ):
     msgs = _messages(recording[0])
     for node in ("wec", "am-cell", "hub"):
-        items = msgs[f"/{node}/health"]
+        items = msgs[f"/{node.replace('-', '_')}/health"]  # recorded under its ROS 2 name
         assert len(items) >= 0.5 * RUN_S, (node, len(items))
         last = items[-1][1]
         assert last.node == node  # type: ignore[attr-defined]
