@@ -337,9 +337,10 @@ class Recording:
     def health(
         self, node: str | None = None, *, start: Any | None = None, end: Any | None = None
     ) -> list[NodeHealth]:
-        """Node health messages (about 1 Hz per node; the hub's own as node ``hub``)."""
+        """Node health messages (about 1 Hz per node; the hub's own as node ``hub``). `node`
+        as in the site file (``am-cell``) or as recorded in topics (``am_cell``)."""
         return [
             m
             for _, m in self._decoded(NODE_HEALTH_TYPE, NodeHealth, start, end)
-            if node is None or m.node == node
+            if node is None or ros_token(m.node) == ros_token(node)
         ]
