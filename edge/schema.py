@@ -20,7 +20,8 @@ from pydantic import (
 )
 
 NAME = r"^[a-z][a-z0-9_-]{0,62}$"
-"""Node, stream and site names: they become Zenoh key chunks and MCAP topic names."""
+"""Node, stream and site names: they become Zenoh key chunks and, through `ros_token`, MCAP
+topic names."""
 CHANNEL_NAME = r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$"
 
 RESERVED_STREAM_NAMES = frozenset({"health", "events", "alarms", "commands", "outputs"})
@@ -46,10 +47,47 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
 
 
+def ros_token(name: str) -> str:
+    """The ROS 2 name token a node or stream name is recorded under (``/<node>/<stream>``).
+
+    ROS 2 name tokens hold letters, digits and ``_`` only (design article "Topic and Service
+    name mapping to DDS"; rmw ``validate_full_topic_name``), while Zenoh keys and site files
+    may use ``-``: ``am-cell`` is recorded as ``/am_cell/...``. One-to-one because the loader
+    refuses two names with the same token (`ros_token_collision`) and any name whose token
+    ROS 2 refuses (`_ros_token_valid`).
+    """
+    return name.replace("-", "_")
+
+
+def _ros_token_valid(what: str, name: str) -> str:
+    token = ros_token(name)
+    # Tokens must not hold repeated underscores nor end in one (the design article: "/foo/_bar"
+    # and "/foo_/bar" would be ambiguous); a leading digit is already refused by NAME.
+    if "__" in token or token.endswith("_"):
+        shown = f" (recorded as {token!r})" if token != name else ""
+        raise ValueError(
+            f"invalid {what} {name!r}{shown}: ROS 2 names refuse a doubled '_' and a "
+            "trailing '_' ('-' is recorded as '_')"
+        )
+    return name
+
+
+def ros_token_collision(names: list[str]) -> tuple[str, str] | None:
+    """The first two of `names` recorded under the same ROS 2 token (``am-cell``, ``am_cell``),
+    or None."""
+    seen: dict[str, str] = {}
+    for name in names:
+        token = ros_token(name)
+        if token in seen:
+            return seen[token], name
+        seen[token] = name
+    return None
+
+
 def _not_reserved_node(name: str) -> str:
     if name == "hub":
         raise ValueError("'hub' is reserved for the hub's own keys; rename the node")
-    return name
+    return _ros_token_valid("node name", name)
 
 
 def _not_reserved_stream(name: str) -> str:
@@ -57,7 +95,7 @@ def _not_reserved_stream(name: str) -> str:
         raise ValueError(
             f"stream name {name!r} is reserved (the node's own {name} are recorded under it)"
         )
-    return name
+    return _ros_token_valid("stream name", name)
 
 
 NodeName = Annotated[str, Field(pattern=NAME), AfterValidator(_not_reserved_node)]

@@ -43,6 +43,7 @@ from hub.read_model import HubView, ReadModel, to_jsonable
 from hub.recorder import Recorder
 from hub.requests import Caller, OperatorQueryable, as_caller, parse_object, text
 from hub.router import Router
+from hub.session import commands_topic
 
 log = logging.getLogger("fleetdaq.commands")
 
@@ -210,7 +211,7 @@ class CommandService:
                 self.refused += 1
                 self.timeouts += reply.refusal == "timeout"
         record = CommandRecord(cmd, reply, node, sent_ns, now)
-        topic = f"/{node}/commands" if node in self.site.nodes else HUB_COMMANDS_TOPIC
+        topic = commands_topic(node) if node in self.site.nodes else HUB_COMMANDS_TOPIC
         self.recorder.record(topic, encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
         what = f"{cmd.action} {cmd.value:g}" if cmd.action in ("set", "pulse") else cmd.action
         by = f"{cmd.sender} {cmd.who}".strip()

@@ -3,8 +3,9 @@
 Received payloads go into MCAP untouched (ros2msg schema, cdr encoding, zstd chunks).
 A file being written is named ``*.mcap.active`` and renamed to ``*.mcap`` once finished, so
 a reader can tell which files are complete. Every file carries the session metadata and the
-effective config; the folder gets a rosbag2 ``metadata.yaml`` listing the closed files, so
-``rosbags`` (and ``ros2 bag``) can open the whole session as one bag.
+effective config; the folder gets a rosbag2 ``metadata.yaml`` from the session's start on,
+listing the closed files (rewritten as each closes), so ``rosbags`` (and ``ros2 bag``) can open
+the whole session as one bag, a live one included.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from mcap.writer import CompressionType, Writer
 from edge import __version__
 from edge.config.hub import RecorderConfig
 from edge.messages import SCHEMAS as MESSAGE_SCHEMAS
+from edge.schema import ros_token
 from edge.wire import BATCH_SCHEMAS, SAMPLE_BATCH_TYPE
 from hub.data_lock import hold_file
 
@@ -53,12 +55,19 @@ def session_name(now_ns: int) -> str:
 
 
 def topic_of(node: str, stream: str) -> str:
-    return f"/{node}/{stream}"
+    """The ROS 2 topic a node's stream is recorded on: ``am-cell``/``tc`` -> ``/am_cell/tc``
+    (`ros_token`: ROS 2 names have no ``-``)."""
+    return f"/{ros_token(node)}/{ros_token(stream)}"
 
 
 def health_topic(node: str) -> str:
     """Where a node's health is recorded (``/hub/health`` for the hub's own)."""
-    return f"/{node}/health"
+    return topic_of(node, "health")
+
+
+def commands_topic(node: str) -> str:
+    """Where the commands to a node's outputs and their replies are recorded."""
+    return topic_of(node, "commands")
 
 
 class StreamSelector:
@@ -196,6 +205,11 @@ class RecordingSession:
         self.topic_types: dict[str, str] = {}
         self._file: _OpenFile | None = None
         self._index = 0
+        # rosbags opens the folder from the start (as an empty bag until the first file closes)
+        try:
+            self.write_rosbag2_metadata()
+        except OSError as err:  # a full disk: the recording goes on; it is written at each split
+            log.warning("%s: no metadata.yaml yet: %s", self.dir, err)
 
     @property
     def current_file(self) -> Path | None:
@@ -347,12 +361,15 @@ def write_rosbag2_metadata(
     folder: Path, files: list[FileStats], topic_types: dict[str, str]
 ) -> None:
     """Write ``folder/metadata.yaml`` (rosbag2 layout, version 5, storage mcap) so rosbags
-    and ``ros2 bag`` open the folder as one bag. Files without messages are left out."""
+    and ``ros2 bag`` open the folder as one bag. Files without messages are left out; with
+    none left it is an empty bag (a live session before its first file closes).
+
+    The file being written (``*.mcap.active``) is never listed: it has no MCAP footer yet,
+    which rosbags refuses ("File end magic is invalid"), and under its final name it would be
+    missing. Readers of a live session see every closed file, a prefix of the recording."""
     files = [s for s in files if s.messages]
-    if not files:
-        return
-    start = min(s.start_ns or 0 for s in files)
-    end = max(s.end_ns or 0 for s in files)
+    start = min((s.start_ns or 0 for s in files), default=0)
+    end = max((s.end_ns or 0 for s in files), default=0)
     counts: dict[str, int] = {}
     for s in files:
         for topic, n in s.per_topic.items():
@@ -391,5 +408,10 @@ def write_rosbag2_metadata(
         }
     }
     tmp = folder / "metadata.yaml.tmp"
-    tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
-    os.replace(tmp, folder / "metadata.yaml")
+    try:
+        tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
+        os.replace(tmp, folder / "metadata.yaml")
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise

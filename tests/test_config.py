@@ -58,6 +58,23 @@ BAD: dict[str, tuple[str, str]] = {
     "bad_node_name_upper_case.yaml": ("nodes.WEC", "invalid node name 'WEC'"),
     "bad_node_name_spaces.yaml": ("nodes.wave rig", "invalid node name 'wave rig'"),
     "bad_node_named_hub.yaml": ("nodes.hub", "'hub' is reserved"),
+    # Names are recorded as ROS 2 name tokens ('-' as '_'): one-to-one, and valid for ROS 2.
+    "bad_node_names_same_ros_name.yaml": (
+        "nodes.am_cell",
+        "node name 'am_cell' is recorded as /am_cell, like nodes.am-cell",
+    ),
+    "bad_stream_names_same_ros_name.yaml": (
+        "nodes.cell.streams.tc_1",
+        "stream name 'tc_1' is recorded as 'tc_1', like streams.tc-1",
+    ),
+    "bad_node_name_not_a_ros_name.yaml": (
+        "nodes.am--cell",
+        "invalid node name 'am--cell' (recorded as 'am__cell'): ROS 2 names refuse a doubled '_'",
+    ),
+    "bad_stream_name_trailing_underscore.yaml": (
+        "nodes.cell.streams.tc_",
+        "invalid stream name 'tc_': ROS 2 names refuse a doubled '_' and a trailing '_'",
+    ),
     "bad_channel_name_invalid.yaml": (
         "nodes.wec.streams.t8.channels[0].name",
         "invalid channel name '1st_load_cell'",

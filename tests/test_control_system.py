@@ -293,7 +293,7 @@ def test_zz_commands_are_recorded_and_every_resume_came_after_cooling(site: Site
         for f in sorted(session.glob("*.mcap")):
             with f.open("rb") as fh:
                 for _, channel, message in make_reader(fh).iter_messages(
-                    topics=["/pier/commands", "/am-cell/commands"]
+                    topics=["/pier/commands", "/am_cell/commands"]
                 ):
                     assert channel.topic.endswith("/commands")
                     records.append(decode(message.data, CommandRecord))

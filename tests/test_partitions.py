@@ -57,6 +57,11 @@ MAIN_SLICE = ("wec-a", "wec-b")
 BAY2_SLICE = ("cell-a", "cell-b")
 
 
+def _topic(node: str) -> str:
+    """Where a node's `wave` stream is recorded: ``wec-a`` as the ROS 2 name ``/wec_a/wave``."""
+    return f"/{node.replace('-', '_')}/wave"
+
+
 @dataclass
 class Rig:
     tmp: Path
@@ -329,8 +334,8 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
     # Each hub holds exactly its slice, without a gap, across both runs of bay2.
     main_rec = _recorded(rig.tmp / "main")
     bay2_rec = _recorded(rig.tmp / "bay2")
-    assert set(main_rec) == {f"/{n}/wave" for n in MAIN_SLICE}
-    assert set(bay2_rec) == {f"/{n}/wave" for n in BAY2_SLICE}
+    assert set(main_rec) == {_topic(n) for n in MAIN_SLICE}
+    assert set(bay2_rec) == {_topic(n) for n in BAY2_SLICE}
     assert len([d for d in (rig.tmp / "bay2").iterdir() if d.name[:1].isdigit()]) == 2
     for topic, seqs in {**main_rec, **bay2_rec}.items():
         assert _contiguous(seqs), f"{topic}: gaps in {len(seqs)} recorded batches"
@@ -338,9 +343,9 @@ def test_two_hubs_record_their_slices_and_a_partition_outage_replays_into_its_ow
     for node in MAIN_SLICE:
         s = rig.summary("main")["streams"][f"{node}/wave"]
         assert (s["gaps"], s["lost"], s["late"]) == (0, 0, 0), s  # untouched by bay2's outage
-        assert max(main_rec[f"/{node}/wave"]) >= main_before[node] + 20
+        assert max(main_rec[_topic(node)]) >= main_before[node] + 20
     for node in BAY2_SLICE:
-        seqs = bay2_rec[f"/{node}/wave"]
+        seqs = bay2_rec[_topic(node)]
         at_stop = max(rig.summary("bay2-1")["streams"][f"{node}/wave"]["last_sequence"], 0)
         assert max(seqs) >= at_stop + 20, "the outage's batches were replayed into bay2"
 
@@ -945,4 +950,4 @@ def test_alarms_and_rules_on_a_partitions_channel_run_on_the_main_hub(tmp_path: 
         for proc in (*edges, bay2, main):
             assert proc.terminate(30) == 0, proc.output()[-3000:]
     recorded = _recorded(tmp_path / "main")
-    assert set(recorded) == {"/wec-a/wave"}, "the main hub records its slice only"
+    assert set(recorded) == {_topic("wec-a")}, "the main hub records its slice only"

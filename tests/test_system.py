@@ -40,7 +40,7 @@ nodes:
         rate_hz: 4
         channels: [{{name: substrate, unit: degC}}, {{name: cold_junction, unit: degC}}]
 """
-RATES = {"/wec/t8": 10000.0, "/am-cell/tc": 4.0}
+RATES = {"/wec/t8": 10000.0, "/am_cell/tc": 4.0}  # node am-cell: topics /am_cell/...
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_every_file_is_closed_and_decodes(recording: tuple[Path, list[Proc]]):
 
 def test_sequences_are_contiguous_across_files(recording: tuple[Path, list[Proc]]):
     msgs = _messages(recording[0])
-    health = {"/wec/health", "/am-cell/health", "/hub/health"}
+    health = {"/wec/health", "/am_cell/health", "/hub/health"}
     assert set(msgs) == {*RATES, "/events", *health}
     for topic in RATES:
         items = msgs[topic]
@@ -153,7 +153,7 @@ def test_every_nodes_typed_health_is_in_the_recording_about_once_a_second(
 ):
     msgs = _messages(recording[0])
     for node in ("wec", "am-cell", "hub"):
-        items = msgs[f"/{node}/health"]
+        items = msgs[f"/{node.replace('-', '_')}/health"]  # recorded under its ROS 2 name
         assert len(items) >= 0.5 * RUN_S, (node, len(items))
         last = items[-1][1]
         assert last.node == node  # type: ignore[attr-defined]

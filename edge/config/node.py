@@ -14,7 +14,18 @@ from edge.config.node_control import ControlConfig, EdgeInterlockConfig
 from edge.display_text import parse_line
 from edge.drivers.hd44780 import LcdDisplay
 from edge.drivers.table import OutputConfig, StreamConfig
-from edge.schema import Endpoints, Float, Int, Name, OutputBase, StreamBase, StreamName, Strict
+from edge.schema import (
+    Endpoints,
+    Float,
+    Int,
+    Name,
+    OutputBase,
+    StreamBase,
+    StreamName,
+    Strict,
+    ros_token,
+    ros_token_collision,
+)
 
 
 class SpoolConfig(Strict):
@@ -89,6 +100,16 @@ class NodeConfig(Strict):
     interlocks: dict[Name, EdgeInterlockConfig] = {}
     """Limits on this node's own channels that block or force its outputs safe, on the edge."""
     control: ControlConfig = ControlConfig()
+
+    @model_validator(mode="after")
+    def _streams_record_under_distinct_ros_names(self) -> NodeConfig:
+        if pair := ros_token_collision(list(self.streams)):
+            a, b = pair
+            raise ValueError(
+                f"streams.{b}: stream name {b!r} is recorded as {ros_token(b)!r}, like "
+                f"streams.{a} ('-' is recorded as '_' in ROS 2 topic names); rename one"
+            )
+        return self
 
     @model_validator(mode="after")
     def _displays_show_known_channels(self) -> NodeConfig:

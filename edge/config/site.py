@@ -16,7 +16,7 @@ from edge.config.hub import HubConfig
 from edge.config.node import NodeConfig
 from edge.config.node_control import CommandsConfig
 from edge.config.security import SecurityConfig
-from edge.schema import NAME, NodeName, Strict
+from edge.schema import NAME, NodeName, Strict, ros_token, ros_token_collision
 
 
 class SiteConfig(Strict):
@@ -34,6 +34,16 @@ class SiteConfig(Strict):
     """The site's ceiling on a command's age (`edge.config.node_control`)."""
     security: SecurityConfig = SecurityConfig()
     """Mutual TLS and access control (`edge.config.security`)."""
+
+    @model_validator(mode="after")
+    def _nodes_record_under_distinct_ros_names(self) -> SiteConfig:
+        if pair := ros_token_collision(list(self.nodes)):
+            a, b = pair
+            raise ValueError(
+                f"nodes.{b}: node name {b!r} is recorded as /{ros_token(b)}, like nodes.{a} "
+                "('-' is recorded as '_' in ROS 2 topic names); rename one"
+            )
+        return self
 
     @model_validator(mode="after")
     def _partitions_slice_the_nodes(self) -> SiteConfig:

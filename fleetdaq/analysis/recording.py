@@ -26,6 +26,7 @@ from edge.messages import (
     Event,
     NodeHealth,
 )
+from edge.schema import ros_token
 from edge.wire import BatchHeader, read_header, sample_format_of
 from fleetdaq.analysis.assemble import Assembler
 from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
@@ -106,9 +107,11 @@ class Recording:
         """
         streams = self.streams()
         key = name.strip().strip("/")
-        hits = [s for s in streams if s.name == key]
+        # The site file's name (``am-cell/tc``) finds the topic it is recorded on (``am_cell``).
+        keys = {key, "/".join(ros_token(part) for part in key.split("/"))}
+        hits = [s for s in streams if s.name in keys]
         if not hits and "/" not in key:
-            hits = [s for s in streams if s.stream == key]
+            hits = [s for s in streams if s.stream in keys]
         if len(hits) == 1:
             return hits[0]
         names = ", ".join(s.name for s in streams) or "none"
@@ -334,9 +337,10 @@ class Recording:
     def health(
         self, node: str | None = None, *, start: Any | None = None, end: Any | None = None
     ) -> list[NodeHealth]:
-        """Node health messages (about 1 Hz per node; the hub's own as node ``hub``)."""
+        """Node health messages (about 1 Hz per node; the hub's own as node ``hub``). `node`
+        as in the site file (``am-cell``) or as recorded in topics (``am_cell``)."""
         return [
             m
             for _, m in self._decoded(NODE_HEALTH_TYPE, NodeHealth, start, end)
-            if node is None or m.node == node
+            if node is None or ros_token(m.node) == ros_token(node)
         ]

@@ -139,7 +139,7 @@ def test_an_open_thermocouple_is_invalid_with_an_event_and_the_cold_junction_sta
     run: tuple[dict, dict],
 ) -> None:
     _, messages = run
-    data, status = _scans(messages["/am-cell/tc"])
+    data, status = _scans(messages["/am_cell/tc"])
     assert (status[:, 0] == 2).sum() >= 6  # OPEN_CIRCUIT for ~1 s at 8 Hz
     assert np.isnan(data[status[:, 0] == 2, 0]).all()
     assert (status[:, 1] == 0).all()
