@@ -1,7 +1,7 @@
 // The stock Foxglove WebSocket client (@foxglove/ws-protocol, over the `ws` package: Node 20
 // has no global WebSocket) against a live hub: connect offering only the protocol's own name,
 // subscribe to every channel advertised, and keep what arrives until a sensor fault has come
-// and gone (a stream message without a channel's field, then one with it again) and an alarm
+// and gone (a stream message with no value for a channel, then one with it again) and an alarm
 // transition has arrived, or until the deadline. Writes everything as JSON to OUT.
 //
 //   node foxglove_live.js URL FAULT_TOPIC FAULT_FIELD DEADLINE_S OUT
@@ -49,7 +49,8 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
     messages[topic].push({ log_time: timestamp.toString(), text });
   }
   if (topic === faultTopic) {
-    const has = faultField in JSON.parse(text);
+    const value = JSON.parse(text)[faultField];
+    const has = value !== undefined && value !== null;
     if (!has) faultSeen = true;
     if (has && faultSeen) faultOver = true;
   }
