@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import pytest
 
@@ -128,12 +129,12 @@ print(json.dumps({
 
 @dataclass(frozen=True)
 class Live:
-    received: dict[str, object]
-    checked: dict[str, object]
+    received: dict[str, Any]
+    checked: dict[str, Any]
     hub_log: str
 
 
-def _flowing(status: dict[str, object]) -> bool:
+def _flowing(status: dict[str, Any]) -> bool:
     return all((stream_view(status, n, s) or {}).get("batches", 0) > 0 for n, s in STREAMS)
 
 
@@ -170,24 +171,26 @@ def live(readers: Readers, tmp_path_factory: pytest.TempPathFactory) -> Iterator
             p.kill()
 
 
-def test_the_stock_client_offering_foxglove_websocket_v1_gets_in_under_that_name(live: Live):
+def test_the_stock_client_offering_foxglove_websocket_v1_gets_in_under_that_name(
+    live: Live,
+) -> None:
     assert live.received["protocol"] == "foxglove.websocket.v1"
     assert live.received["reason"] == "fault seen and over, alarm seen"
-    topics = {c["topic"] for c in live.received["channels"]}  # type: ignore[attr-defined]
+    topics = {c["topic"] for c in live.received["channels"]}
     assert topics == {"/wec/t8", "/cell/tc", "/events", "/log", "/alarms", "/alarms/current",
                       "/diagnostics"}  # fmt: skip
 
 
-def test_every_message_of_every_channel_matches_its_json_schema(live: Live):
+def test_every_message_of_every_channel_matches_its_json_schema(live: Live) -> None:
     counts = live.checked["counts"]
     assert live.checked["invalid"] == [], live.checked["invalid"]
-    assert all(counts[t] > 0 for t in ("/wec/t8", "/cell/tc", "/alarms", "/alarms/current"))  # type: ignore[index]
+    assert all(counts[t] > 0 for t in ("/wec/t8", "/cell/tc", "/alarms", "/alarms/current"))
 
 
-def test_values_equal_the_recording_and_a_fault_leaves_the_field_out(live: Live):
-    assert live.checked["tc_equal"] == live.checked["counts"]["/cell/tc"], live.checked["differ"]  # type: ignore[index]
-    assert live.checked["left_out"] >= 2, "the open thermocouple's scans arrived without a value"  # type: ignore[operator]
-    assert live.checked["t8_equal"] >= 0.8 * live.checked["t8"]  # type: ignore[operator]
-    faults = [a for a in live.checked["alarms"] if a[0] == "substrate_hot.fault"]  # type: ignore[attr-defined]
+def test_values_equal_the_recording_and_a_fault_leaves_the_field_out(live: Live) -> None:
+    assert live.checked["tc_equal"] == live.checked["counts"]["/cell/tc"], live.checked["differ"]
+    assert live.checked["left_out"] >= 2, "the open thermocouple's scans arrived without a value"
+    assert live.checked["t8_equal"] >= 0.8 * live.checked["t8"]
+    faults = [a for a in live.checked["alarms"] if a[0] == "substrate_hot.fault"]
     assert faults, live.checked["alarms"]
     assert not all(has_value for *_, has_value in faults), "a fault has no value: left out"
