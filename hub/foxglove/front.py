@@ -98,7 +98,10 @@ class SubprotocolFront:
         self.requested_port = port
         self.upstream_port = upstream_port
         self.tls = tls
-        self.counts = {"connections": 0, "renamed": 0, "refused": 0, "upstream_errors": 0}
+        self.counts = {
+            "connections": 0, "renamed": 0, "refused": 0, "upstream_errors": 0,
+            "connection_errors": 0,
+        }  # fmt: skip
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server: asyncio.Server | None = None
@@ -147,6 +150,7 @@ class SubprotocolFront:
 
     def _run(self) -> None:
         loop = asyncio.new_event_loop()
+        loop.set_exception_handler(self._loop_error)
         self._loop = loop
         try:
             self._server = loop.run_until_complete(
@@ -174,6 +178,17 @@ class SubprotocolFront:
         if self._connections:
             await asyncio.wait(self._connections, timeout=5)
         asyncio.get_running_loop().stop()
+
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, object]) -> None:
+        """What asyncio would log about one connection (a failed TLS handshake, ...): counted,
+        said the first times and every 1000th, so a client in a loop cannot fill the log."""
+        self.counts["connection_errors"] += 1
+        if worth_telling(self.counts["connection_errors"], first=10):
+            log.warning(
+                "Foxglove live view: a connection failed: %s %s (%d so far)",
+                context.get("message", ""), context.get("exception", ""),
+                self.counts["connection_errors"],
+            )  # fmt: skip
 
     def _refused(self, why: str) -> None:
         self.counts["refused"] += 1

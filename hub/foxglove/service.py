@@ -200,6 +200,8 @@ class FoxgloveLive:
         return f"{scheme}://{url_host(host)}:{port}"
 
     def stop(self) -> None:
+        if self._front is not None:
+            self.counts.update(self._front.counts)
         if self._running:
             log.info(
                 "Foxglove live view stopping: %s",
@@ -212,7 +214,6 @@ class FoxgloveLive:
         for c in self._consumers:
             c.stop()
         if self._front is not None:
-            self.counts.update(self._front.counts)
             self._front.stop()
             self._front = None
         if self._server is not None:
