@@ -12,7 +12,9 @@ warmup + 2 x rounds x phase seconds (~70 s by default).
 Target: the client costs the hub at most 5 % more CPU, in percent of one core (psutil's and
 top's scale: 3 % -> 8 % would be the limit). Also reported: on / off as a ratio (the hub at this
 load uses only a few percent of a core, so the ratio says more about the baseline than the
-bridge), the messages the client received per second, and that the recording never gapped.
+bridge), the messages the client received per second, that the recording never gapped, and
+the part of the hub's CPU that the live view's front (`hub.foxglove.front`, which copies every
+byte between the client and the SDK's server) took while subscribed.
 
 Progress on stderr; the last line on stdout is one JSON object: figures, targets, met.
 """
@@ -60,6 +62,19 @@ def _cpu_s(p: psutil.Process) -> float:
     return float(t.user + t.system)
 
 
+def _thread_cpu_s(p: psutil.Process, name: str) -> float:
+    """CPU seconds of `p`'s threads the system names `name` (`edge.threads.NamedThread`)."""
+    total = 0.0
+    for t in p.threads():
+        try:
+            comm = Path(f"/proc/{p.pid}/task/{t.id}/comm").read_text().strip()
+        except OSError:
+            continue
+        if comm == name:
+            total += t.user_time + t.system_time
+    return total
+
+
 def _phase(hub: psutil.Process, seconds: float) -> tuple[float, float]:
     """(hub CPU seconds, wall seconds) over `seconds`."""
     c0, w0 = _cpu_s(hub), time.monotonic()
@@ -99,7 +114,7 @@ def main() -> None:
             say(f"{node}/{STREAM} flowing at {RATE_HZ} S/s x 8 channels; warming up")
             time.sleep(args.warmup_s)
             hub_ps = psutil.Process(hub.popen.pid)
-            off_cpu = off_wall = on_cpu = on_wall = 0.0
+            off_cpu = off_wall = on_cpu = on_wall = front_cpu = 0.0
             received = 0
             for r in range(args.rounds):
                 cpu, wall = _phase(hub_ps, args.phase_s)
@@ -111,7 +126,9 @@ def main() -> None:
                     sub = subs[f"/{node}/{STREAM}"]
                     client.wait(lambda c=client, s=sub: c.messages(s), 10, "the first message")
                     n0 = len(client.messages(sub))
+                    f0 = _thread_cpu_s(hub_ps, "foxglove-front")
                     cpu, wall = _phase(hub_ps, args.phase_s)
+                    front_cpu += _thread_cpu_s(hub_ps, "foxglove-front") - f0
                     got = len(client.messages(sub)) - n0
                 on_cpu, on_wall = on_cpu + cpu, on_wall + wall
                 received += got
@@ -128,6 +145,7 @@ def main() -> None:
             "hub_cpu_pct_subscribed": rounded(on_pct, 3),
             "extra_pct_of_a_core": rounded(on_pct - off_pct, 3),
             "ratio": rounded(ratio, 4),
+            "front_cpu_pct_subscribed": rounded(100 * front_cpu / on_wall, 3),
             "messages_per_s": rounded(received / on_wall, 4),
             "stream": f"{node}/{STREAM}: 8 channels x {RATE_HZ} S/s",
             "rounds": args.rounds,

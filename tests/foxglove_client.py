@@ -8,7 +8,7 @@ Server -> client: text frames are JSON with an ``op`` (``serverInfo``, ``adverti
 Client -> server: ``subscribe`` / ``unsubscribe`` (JSON).
 
 It offers the subprotocols Lichtblick offers (``foxglove.websocket.v1``, then
-``foxglove.sdk.v1``); the foxglove-sdk server accepts only the second.
+``foxglove.sdk.v1``); the hub answers either (`hub.foxglove.front`), the second when both.
 """
 
 from __future__ import annotations

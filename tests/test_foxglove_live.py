@@ -151,7 +151,7 @@ def test_a_slow_stream_sends_every_scan_unchanged():
         np.testing.assert_array_equal(arr, data)
 
 
-def test_messages_are_json_with_a_field_per_channel_and_null_for_no_valid_sample():
+def test_messages_are_json_with_a_field_per_channel_left_out_where_no_sample_was_valid():
     msgs = StreamMessages("wec", "t8", ["heave", "max", "x.y"], ["m", "kN", ""], INTERVAL_NS)
     props = msgs.schema["properties"]
     assert props["heave"]["title"] == "heave [m]"
@@ -169,8 +169,14 @@ def test_messages_are_json_with_a_field_per_channel_and_null_for_no_valid_sample
     assert (t1, t2) == (1_790_000_000_000_000_000, 1_790_000_000_005_000_000)
     assert a["header"] == {"stamp": {"sec": 1_790_000_000, "nsec": 0}, "frame_id": "wec/t8"}
     assert b["header"]["stamp"] == {"sec": 1_790_000_000, "nsec": 5_000_000}
-    assert (a["heave"], a["max_"], a["min"]["max_"], a["max"]["x.y"]) == (1.5, None, None, 1.0)
+    assert (a["heave"], a["max"]["x.y"], a["min"]["heave"]) == (1.5, 1.0, 1.0)
+    assert [("max_" in x) for x in (a, a["min"], a["max"])] == [False] * 3, "left out, not null"
     assert (b["max_"], b["x.y"], b["scans"]) == (3.0, 1e-300, 50)
+    assert b["min"] == {"heave": 2.0, "max_": 3.0, "x.y": 0.0}
+    only_nan = Intervals(rows.time_ns[:1], np.full((1, 3), np.nan), np.full((1, 3), np.nan),
+                         np.full((1, 3), np.nan), np.array([4]))  # fmt: skip
+    ((_, m3),) = msgs.encode(only_nan)
+    assert json.loads(m3) == {"header": a["header"], "scans": 4, "min": {}, "max": {}}
 
 
 # --- the service in this process -----------------------------------------------------------------
@@ -256,6 +262,45 @@ def test_a_stream_nobody_subscribes_to_costs_no_decimation(live: _Live):
     assert times == sorted(times)
     assert len(set(times)) == len(times)
     assert times[0] >= live.t0 + 3 * 100_000_000
+
+
+@pytest.mark.parametrize(
+    ("offers", "answered"),
+    [
+        (("foxglove.websocket.v1",), "foxglove.websocket.v1"),  # @foxglove/ws-protocol
+        (("foxglove.sdk.v1",), "foxglove.sdk.v1"),  # foxglove-sdk's own clients
+        (("foxglove.websocket.v1", "foxglove.sdk.v1"), "foxglove.sdk.v1"),  # Lichtblick
+    ],
+)
+def test_a_client_gets_in_under_either_name_of_the_protocol_and_receives_data(
+    live: _Live, offers: tuple[str, ...], answered: str
+):
+    with FoxgloveClient(f"ws://127.0.0.1:{live.port}", subprotocols=offers) as client:
+        assert client.protocol == answered
+        client.wait(lambda: "/wec/t8" in client.topics(), 10, "the advertise")
+        sub = client.subscribe("/wec/t8")
+        client.wait(live.live._streams["wec", "t8"].channel.has_sinks, 10, "subscribed")
+        for seq in range(3):
+            live.publish(seq)
+        got = client.wait(lambda: _at_least(client, sub, 39), 10, "2 batches of messages")
+    assert all(set(m.json()) >= {"header", "heave", "surge"} for m in got)
+
+
+def test_a_request_head_that_is_too_long_or_not_http_is_refused_and_counted(live: _Live):
+    def answer(data: bytes) -> bytes:
+        with socket.create_connection(("127.0.0.1", live.port), timeout=10) as s:
+            s.sendall(data)
+            return s.recv(4096)
+
+    long_head = b"GET / HTTP/1.1\r\nX-Pad: " + b"a" * 20_000 + b"\r\n\r\n"
+    assert answer(long_head).startswith(b"HTTP/1.1 400 ")
+    assert answer(b"\x16\x03\x01 hello\r\n\r\n").startswith(b"HTTP/1.1 400 ")
+    assert live.live._front is not None
+    assert live.live._front.counts["refused"] == 2
+    with FoxgloveClient(
+        f"ws://127.0.0.1:{live.port}", subprotocols=("foxglove.websocket.v1",)
+    ) as c:
+        c.wait(lambda: "/wec/t8" in c.topics(), 10, "the advertise, after the refusals")
 
 
 def test_a_taken_port_fails_the_start_with_one_line():
@@ -452,8 +497,8 @@ def test_every_stream_and_topic_is_advertised_with_a_schema_foxglove_reads(fleet
 
 
 def _conforms(c: FoxgloveClient, topic: str, messages: list[Any]) -> None:
-    """Every message has the advertised schema's fields with values of their types (a number
-    may be null: no valid sample)."""
+    """Every message has the advertised schema's fields with values of their types (never
+    null: a number with no valid sample is left out)."""
     schema = json.loads(c.channel(topic)["schema"])
     for m in messages:
         _value(m, schema, topic)
@@ -471,7 +516,7 @@ def _value(value: Any, schema: dict[str, Any], where: str) -> None:
         for i, v in enumerate(value):
             _value(v, schema["items"], f"{where}[{i}]")
     elif kind == "number":
-        assert value is None or type(value) in (int, float), where
+        assert type(value) in (int, float), where
     elif kind == "integer":
         assert type(value) is int, where
         assert value >= schema.get("minimum", value), where
@@ -590,12 +635,12 @@ def test_a_4_hz_stream_arrives_scan_by_scan(fleet: Fleet):
     _conforms(c, "/am-cell/tc", msgs)
     assert all(m["scans"] == 1 for m in msgs)
     assert all(
-        m["substrate"] is None or m["min"]["substrate"] == m["substrate"] == m["max"]["substrate"]
+        "substrate" not in m or m["min"]["substrate"] == m["substrate"] == m["max"]["substrate"]
         for m in msgs
     )
     gaps = np.diff([m.log_time_ns for m in got]) / 1e6
     assert np.median(gaps) == pytest.approx(250, abs=5), "one message per scan at 4 Hz"
-    values = [m["substrate"] for m in msgs if m["substrate"] is not None]
+    values = [m["substrate"] for m in msgs if "substrate" in m]
     assert all(0 < x < 600 for x in values), values  # °C: ambient 24 to a 450 peak
 
 

@@ -3,10 +3,12 @@ with (message encoding ``json``, schema encoding ``jsonschema``).
 
 The schemas keep to what both apps' JSON-Schema readers accept: ``object`` with
 ``properties``, one ``type`` per field (``number``, ``integer``, ``string``, ``boolean``,
-``object``, ``array``); a value that is not a number (NaN: no valid sample) is sent as
-``null``, which the Plot panel skips. Times are ``{sec, nsec}`` (what both apps take as a
-time); every message that has one carries it as ``header.stamp``, so the Plot panel's
-"header stamp" mode plots against acquisition time.
+``object``, ``array``). A value that is not a number (NaN: no valid sample, an alarm with no
+value) is left out of its message, never sent as ``null``: the Plot panel draws a gap for a
+missing field as it would for ``null``, and every message then matches its schema for strict
+readers too (a ``["number", "null"]`` type is not one both apps' schema readers take). Times
+are ``{sec, nsec}`` (what both apps take as a time); every message that has one carries it as
+``header.stamp``, so the Plot panel's "header stamp" mode plots against acquisition time.
 """
 
 from __future__ import annotations
@@ -57,8 +59,9 @@ def iso(t_ns: int) -> str:
     return t.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
-def _number(x: float) -> float | None:
-    return x if math.isfinite(x) else None
+def _number(x: float, key: str = "value") -> dict[str, float]:
+    """``{key: x}``, or nothing when `x` is not a number (left out, never null)."""
+    return {key: x} if math.isfinite(x) else {}
 
 
 def dumps(msg: dict[str, Any]) -> bytes:
@@ -97,7 +100,8 @@ class StreamMessages:
             f: {
                 "type": "number",
                 "title": f"{c} [{u}]" if u else c,
-                "description": f"{c}, {u or 'no unit'}: mean over the interval",
+                "description": f"{c}, {u or 'no unit'}: mean over the interval "
+                "(left out when no sample in it was valid)",
             }
             for f, c, u in zip(fields, channels, units, strict=True)
         }
@@ -141,7 +145,8 @@ class StreamMessages:
 
         # %.17g: every float64 round-trips exactly, formatted in C (no repr per value).
         self._finite = template("%.17g")
-        self._any = template("%s")
+        self._keys = keys
+        self._head = '{"header":{"stamp":{"sec":%d,"nsec":%d},"frame_id":' + frame + '},"scans":%d'
 
     def encode(self, rows: Intervals) -> list[tuple[int, bytes]]:
         """(acquisition time ns, JSON bytes) per interval."""
@@ -156,14 +161,22 @@ class StreamMessages:
             sec, nsec = divmod(t, 1_000_000_000)
             if finite:
                 text = self._finite % (sec, nsec, n, *row)
-            else:  # JSON has no NaN: null (the Plot panel skips it)
-                text = self._any % (sec, nsec, n, *map(_json_number, row))
+            else:  # JSON has no NaN: such a field is left out (the Plot panel draws a gap)
+                text = self._sparse(sec, nsec, n, row)
             out.append((t, text.encode()))
         return out
 
+    def _sparse(self, sec: int, nsec: int, scans: int, row: list[float]) -> str:
+        k = len(self._keys)
 
-def _json_number(x: float) -> str:
-    return repr(x) if math.isfinite(x) else "null"
+        def fields(part: list[float]) -> list[str]:
+            return [f"{key}:{x!r}" for key, x in zip(self._keys, part, strict=True)
+                    if math.isfinite(x)]  # fmt: skip
+
+        mean, lo, hi = fields(row[:k]), fields(row[k : 2 * k]), fields(row[2 * k :])
+        head = self._head % (sec, nsec, scans)
+        return ",".join([head, *mean, '"min":{' + ",".join(lo) + "}",
+                         '"max":{' + ",".join(hi) + "}"]) + "}"  # fmt: skip
 
 
 # --- events, the log, alarms ---------------------------------------------------------------------
@@ -239,7 +252,7 @@ _ALARM_PROPERTIES: Final = {
     "state": {"type": "string"},
     "active": {"type": "boolean"},
     "since": {"type": "string", "description": "UTC, ISO 8601; empty when normal"},
-    "value": {"type": "number"},
+    "value": {"type": "number", "description": "left out when the alarm has no value"},
     "unit": {"type": "string"},
     "count": {"type": "integer", "minimum": 0},
     "condition": {"type": "string"},
@@ -283,12 +296,12 @@ def alarm_fields(a: AlarmView) -> dict[str, Any]:
         "state": a.state,
         "active": a.active,
         "since": iso(a.since_ns) if a.since_ns > 0 else "",
-        "value": _number(a.value),
         "unit": a.unit,
         "count": a.count,
         "condition": a.condition,
         "description": a.description,
         "shelved_until": iso(a.shelved_until_ns) if a.shelved_until_ns > 0 else "",
+        **_number(a.value),
     }
 
 
@@ -309,8 +322,9 @@ def alarm_transition(e: Event, t_ns: int, view: AlarmView | None) -> dict[str, A
         message=e.message,
         severity=e.get("severity") or out.get("severity", ""),
         state=e.get("state") or out.get("state", ""),
-        value=_number(number),
     )
+    out.pop("value", None)
+    out.update(_number(number))
     return out
 
 

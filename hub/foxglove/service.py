@@ -39,6 +39,7 @@ from hub.bus import EventBus, worth_telling
 from hub.errors import HubError
 from hub.foxglove import diagnostics
 from hub.foxglove.decimate import INTERVAL_NS, Decimator
+from hub.foxglove.front import SubprotocolFront
 from hub.foxglove.messages import (
     ALARM_TABLE_SCHEMA,
     ALARM_TRANSITION_SCHEMA,
@@ -106,6 +107,7 @@ class FoxgloveLive:
                 )
         self._channels: dict[str, Channel] = {}
         self._server: WebSocketServer | None = None
+        self._front: SubprotocolFront | None = None
         self._context: Context | None = None
         self._subscriptions = 0
         self._lock = threading.Lock()
@@ -150,23 +152,36 @@ class FoxgloveLive:
         for topic, schema in FIXED_TOPICS.items():
             self._channels[topic] = _channel(context, topic, schema)
         host, port = split_listen(self.listen)
+        # The front takes the configured address first (a taken port fails before anything
+        # else starts); the SDK listens behind it, on loopback, in clear (`hub.foxglove.front`).
+        self._front = front = SubprotocolFront(host, port, 0, pair.context if pair else None)
+        try:
+            front.bind()
+        except OSError as err:
+            self._close_channels()
+            raise HubError(
+                f"the Foxglove live view cannot listen on {self.listen}: "
+                f"{err.strerror or err} (site file: hub.dashboard.foxglove.listen, "
+                "or enabled: false)"
+            ) from err
         try:
             self._server = foxglove.start_server(
                 name=f"fleetdaq hub, site {self.site.site}",
-                host=host,
-                port=port,
+                host="127.0.0.1",
+                port=0,
                 capabilities=[Capability.Time],
                 server_listener=cast("ServerListener", _Listener(self)),
                 context=context,
-                tls_cert=pair.cert_pem if pair else None,
-                tls_key=pair.key_pem if pair else None,
             )
-        except RuntimeError as err:
+            front.upstream_port = int(self._server.port)
+            front.start()
+        except (RuntimeError, OSError) as err:
             self._close_channels()
+            front.stop()
             reason = str(err).removeprefix("FoxgloveError: ")
             raise HubError(
-                f"the Foxglove live view cannot listen on {self.listen}: {reason} "
-                "(site file: hub.dashboard.foxglove.listen, or enabled: false)"
+                f"the Foxglove live view cannot start its server: {reason} "
+                "(site file: hub.dashboard.foxglove, or enabled: false)"
             ) from err
         self._running = True
         for c in self._consumers:
@@ -179,12 +194,14 @@ class FoxgloveLive:
         """``ws://HOST:PORT`` (``wss://`` with `tls`) as bound (port 0 in the site file: the
         one the system gave)."""
         host, port = split_listen(self.listen)
-        if self._server is not None:
-            port = int(self._server.port)
+        if self._front is not None:
+            port = self._front.port
         scheme = "wss" if self.site.hub.dashboard.foxglove.tls else "ws"
         return f"{scheme}://{url_host(host)}:{port}"
 
     def stop(self) -> None:
+        if self._front is not None:
+            self.counts.update(self._front.counts)
         if self._running:
             log.info(
                 "Foxglove live view stopping: %s",
@@ -196,6 +213,9 @@ class FoxgloveLive:
             self._ticker.join(10)
         for c in self._consumers:
             c.stop()
+        if self._front is not None:
+            self._front.stop()
+            self._front = None
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -207,6 +227,8 @@ class FoxgloveLive:
             return None
         if not self._ticker.is_alive():
             return "its ticker thread (diagnostics, time) died"
+        if self._front is not None and not self._front.alive():
+            return "its front (the listening port) stopped"
         if not all(c.alive for c in self._consumers):
             return "its batch-feed thread died"
         return None
