@@ -628,11 +628,11 @@ def _recorded_until(fleet: Fleet, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
 
 def test_a_4_hz_stream_arrives_scan_by_scan(fleet: Fleet):
     c = fleet.client
-    sub = c.subscribe("/am-cell/tc")
-    got = c.wait(lambda: _at_least(c, sub, 8), 60, "2 s of /am-cell/tc")
+    sub = c.subscribe("/am_cell/tc")
+    got = c.wait(lambda: _at_least(c, sub, 8), 60, "2 s of /am_cell/tc")
     c.unsubscribe(sub)
     msgs = [m.json() for m in got]
-    _conforms(c, "/am-cell/tc", msgs)
+    _conforms(c, "/am_cell/tc", msgs)
     assert all(m["scans"] == 1 for m in msgs)
     assert all(
         "substrate" not in m or m["min"]["substrate"] == m["substrate"] == m["max"]["substrate"]

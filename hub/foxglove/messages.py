@@ -24,6 +24,7 @@ import numpy as np
 from edge.messages import Event
 from hub.foxglove.decimate import Intervals
 from hub.read_model import AlarmView
+from hub.session import topic_of
 
 STREAM_ENVELOPE: Final = ("min", "max")
 _RESERVED: Final = frozenset({"header", "scans", *STREAM_ENVELOPE})
@@ -93,7 +94,7 @@ class StreamMessages:
         units: Sequence[str],
         interval_ns: int,
     ) -> None:
-        self.topic = f"/{node}/{stream}"
+        self.topic = topic_of(node, stream)  # the recording's topic (a valid ROS 2 name)
         self.schema_name = f"fleetdaq.LiveStream.{node}.{stream}"
         fields = [field_name(c) for c in channels]
         value = {
