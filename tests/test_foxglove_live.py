@@ -32,6 +32,7 @@ from hub.foxglove.decimate import INTERVAL_NS, Decimator, Intervals
 from hub.foxglove.messages import StreamMessages
 from hub.foxglove.service import FoxgloveLive
 from hub.read_model import ReadModel
+from hub.session import topic_of
 from ptp.quality import UNSYNCED
 from tests.foxglove_client import FoxgloveClient, Received
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_for_port
@@ -476,7 +477,7 @@ def test_every_stream_and_topic_is_advertised_with_a_schema_foxglove_reads(fleet
     assert c.server_info is not None
     assert "time" in c.server_info["capabilities"]
     assert c.topics() == {
-        *(f"/{n}/{s}" for n, s in DEMO_STREAMS),
+        *(topic_of(n, s) for n, s in DEMO_STREAMS),  # as recorded: valid ROS 2 names
         "/events", "/log", "/alarms", "/alarms/current", "/diagnostics",
     }  # fmt: skip
     for ch in c.channels.values():
