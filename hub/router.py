@@ -97,4 +97,7 @@ class Router:
         self._untap()
 
     def failure(self) -> str | None:
+        tap = self._tap
+        if tap is not None and tap.died is not None:
+            return f"the router's log tap stopped ({tap.died}): refused traffic is not counted"
         return None

@@ -228,6 +228,8 @@ class RouterLogTap:
         self._thread: threading.Thread | None = None
         self._enabled = threading.Event()
         self._verbose = bool(os.environ.get("RUST_LOG"))
+        self.died: str | None = None
+        """Why the tap's thread stopped while the router ran (None: it runs, or was stopped)."""
 
     def start(self) -> None:
         with _PROCESS.lock:
@@ -285,24 +287,36 @@ class RouterLogTap:
         read, out = self._read, self._saved
         assert read is not None
         assert out is not None
-        rest = b""
         try:
-            while chunk := os.read(read, 65536):
-                lines = (rest + chunk).split(b"\n")
-                rest = lines.pop()
-                if len(rest) > _LONGEST_LINE:  # output that is no log line: pass it on as it is
-                    lines.append(rest)
-                    rest = b""
-                keep = [line for line in lines if self._take(line)]
-                if self._found:
-                    self._found = False
-                    self._publish()
-                if keep:
-                    _write_all(out, b"\n".join(keep) + b"\n")
-            if rest:
-                _write_all(out, rest)
+            self._drain(read, out)
+        except BaseException as err:
+            # Nobody would read the pipe any more: a full one would hold up every thread that
+            # writes a line (the router's included). Give fd 1 back first, then say so.
+            if self._saved is not None:
+                with contextlib.suppress(OSError):
+                    os.dup2(out, 1)
+            self.died = f"{type(err).__name__}: {err}"
+            _complain(err)
+            raise
         finally:
             os.close(read)
+
+    def _drain(self, read: int, out: int) -> None:
+        rest = b""
+        while chunk := os.read(read, 65536):
+            lines = (rest + chunk).split(b"\n")
+            rest = lines.pop()
+            if len(rest) > _LONGEST_LINE:  # output that is no log line: pass it on as it is
+                lines.append(rest)
+                rest = b""
+            keep = [line for line in lines if self._take(line)]
+            if self._found:
+                self._found = False
+                self._publish()
+            if keep:
+                _write_all(out, b"\n".join(keep) + b"\n")
+        if rest:
+            _write_all(out, rest)
 
     def _publish(self) -> None:
         try:
@@ -363,7 +377,7 @@ class _ProcessLog:
 _PROCESS = _ProcessLog()
 
 
-def _complain(err: Exception) -> None:
+def _complain(err: BaseException) -> None:
     # stderr: the bus may be what failed; a stopped tap would block the router's threads
     _PROCESS.complaints += 1
     if worth_telling(n := _PROCESS.complaints):

@@ -11,7 +11,10 @@ declared wec's liveliness token and asked the hub's status. The system test
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+import pytest
 
 from edge.config.load import parse_config
 from edge.messages import Event
@@ -29,7 +32,7 @@ from hub.router_log import (
     TlsRefusal,
     UnknownSubject,
 )
-from tests.procs import free_port
+from tests.procs import free_port, wait_until
 from tests.test_security import SITE
 
 LOG = Path(__file__).parent / "data" / "router_log" / "zenoh-1.10.2.log"
@@ -206,3 +209,44 @@ def test_a_second_router_in_one_process_says_its_refusals_go_uncounted(tmp_path:
     (uncounted,) = seen[1]
     assert uncounted.tag == "refused_traffic_uncounted"
     assert "another router in this process already reads the log" in uncounted.message
+
+
+class _Dies(BaseException):
+    """Something no handler of a line catches (the tap's thread ends on it)."""
+
+
+class _DyingSink(RefusedTraffic):
+    def refused(self, line: RouterLine) -> None:
+        raise _Dies(f"cannot count {type(line).__name__}")
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")  # it is loud
+def test_a_tap_that_dies_gives_stdout_back_and_the_router_says_so(tmp_path: Path):
+    """A dead tap must neither hold up whoever writes a line (a full pipe nobody reads would
+    block the router's own threads) nor pass for a running one."""
+    pki = tmp_path / "pki"
+    init(pki, "sec", ["127.0.0.1"])
+    site = parse_config(SITE.format(pki=pki, port=free_port()), "<test>")
+    bus = EventBus()
+    bus.start()
+    router = Router(
+        [f"tls/127.0.0.1:{free_port()}"], site, refused=_DyingSink(bus, ReadModel("sec"))
+    )
+    try:
+        router.start()
+        assert router.failure() is None
+        tap = router._tap
+        assert tap is not None
+        assert tap._saved is not None
+        real_stdout = os.fstat(tap._saved).st_ino
+        assert os.fstat(1).st_ino != real_stdout, "fd 1 is the tap's pipe while it runs"
+        denial = next(line for line in LOG.read_text().splitlines() if "is unauthorized" in line)
+        os.write(1, (denial + "\n").encode())
+        wait_until(router.failure, 10, "the router to say its tap stopped")
+        assert "_Dies: cannot count AclDenial" in (router.failure() or "")
+        assert "refused traffic is not counted" in (router.failure() or "")
+        assert os.fstat(1).st_ino == real_stdout, "fd 1 given back"
+        os.write(1, b"x" * (2 << 20) + b"\n")  # more than the pipe holds: does not block
+    finally:
+        router.stop()
+        bus.stop()
