@@ -474,8 +474,8 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
             lambda: re.search(r"Foxglove live view on (ws://\S+)", main.output()), 10, "Foxglove"
         )
         with FoxgloveClient(fox.group(1)) as client:
-            client.wait(lambda: "/cell-a/wave" in client.topics(), 10, "the advertise")
-            sub = client.subscribe("/cell-a/wave")
+            client.wait(lambda: "/cell_a/wave" in client.topics(), 10, "the advertise")
+            sub = client.subscribe("/cell_a/wave")
             client.wait(lambda: len(client.messages(sub)) >= 20 or None, 30, "its messages")
             assert {"c0", "c1"} <= set(client.messages(sub)[-1].json()), "a plottable channel each"
         wait_until(
