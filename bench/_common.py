@@ -46,7 +46,7 @@ _SENTINEL_SEQ = 0x5EED_5EC0_FFEE_0001
 
 
 def node_name(i: int) -> str:
-    return f"t8-{i:02d}"
+    return f"t8_{i:02d}"  # a valid ROS 2 name as it is (recorded unchanged)
 
 
 def free_port() -> int:

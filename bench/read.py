@@ -8,7 +8,7 @@ wave sim's noisy float64, ~256 KB of CDR each, zstd chunks) is written by the hu
 `RecordingSession`. Each reader produces the same thing, a (scans x channels) float64 array
 and an int64 time per scan, and the results are checked equal:
 
-- fleetdaq: ``fleetdaq.read.read_stream(session, "t8-00/t8")``;
+- fleetdaq: ``fleetdaq.read.read_stream(session, "t8_00/t8")``;
 - rosbags: ``AnyReader`` + ``deserialize`` per message (numpy arrays), then one concatenate;
 - mcap-ros2-support: ``DecoderFactory`` (arrays as Python lists), on the first
   `--mcap-ros2-batches` batches only: it is slow, and a rate is a rate.
