@@ -9,6 +9,7 @@ spread over both workers), and ``--dist loadfile`` would make two PTP labs."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import pytest
@@ -40,3 +41,18 @@ class Scheduling:
 def pytest_configure(config: pytest.Config) -> None:
     if config.pluginmanager.hasplugin("xdist"):
         config.pluginmanager.register(Scheduling(), "fleetdaq-scheduling")
+
+
+REQUIRE_REAL = "FLEETDAQ_REQUIRE_REAL"
+"""Set (to 1) by .ci/run: there every real part (namespaces, mounts, Chromium, sshd, ptp4l) is
+installed, so a test that skips for want of one is a failure, never a green run that hid it."""
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    outcome = yield
+    report = outcome.get_result()
+    if report.skipped and os.environ.get(REQUIRE_REAL) == "1" and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
+        report.outcome = "failed"
+        report.longrepr = f"skipped under {REQUIRE_REAL}=1 (a real part is missing): {reason}"
