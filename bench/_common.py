@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from edge.config.load import parse_config
-from edge.config.site import SiteConfig
-from edge.drivers.wave_sim import WaveSim, WaveSimStream
-from edge.wire import BatchEncoder
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.contract.wire import BatchEncoder
+from fleetdaq.edge.drivers.wave_sim import WaveSim, WaveSimStream
+from fleetdaq.ptp.quality import UNSYNCED
 
 SITE = "bench"
 STREAM = "t8"

@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 sys.path.remove(str(Path(__file__).resolve().parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -53,15 +53,15 @@ from _common import (
     t8_stream,
 )
 
-from edge.config.load import parse_config
-from edge.wire import decode_batch, read_header
-from hub.alarms.kernels import warm_up
-from hub.alarms.supervisor import Supervisor
-from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
-from hub.read_model import ReadModel
-from hub.session import RecordingSession, topic_of
-from hub.stream_stats import StreamStats
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.wire import decode_batch, read_header
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.hub.recording.session import RecordingSession, topic_of
+from fleetdaq.hub.recording.stream_stats import StreamStats
+from fleetdaq.hub.supervision.alarms.kernels import warm_up
+from fleetdaq.hub.supervision.alarms.supervisor import Supervisor
 
 TARGET_CPU_SHARE = 0.10
 TARGET_THROUGHPUT_RATIO = 0.9

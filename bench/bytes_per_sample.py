@@ -29,7 +29,7 @@ from pathlib import Path
 # an installed copy of fleetdaq.
 sys.path.remove(str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -43,15 +43,15 @@ import numpy as np
 import numpy.typing as npt
 from _common import Progress, emit, rounded
 
-from edge.config.hub import RecorderConfig
-from edge.config.load import load_config
-from edge.config.site import SiteConfig, demo_config_path
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.shared import SharedDevices
-from edge.drivers.table import StreamConfig, create_driver
-from edge.wire import SAMPLE_FORMATS, BatchEncoder
-from hub.session import RecordingSession
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import load_config
+from fleetdaq.contract.config.site import SiteConfig, demo_config_path
+from fleetdaq.contract.wire import SAMPLE_FORMATS, BatchEncoder
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.table import StreamConfig, create_driver
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import RecordingSession
+from fleetdaq.ptp.quality import UNSYNCED
 
 COMPRESSIONS = ("zstd", "lz4", "none")
 TARGET_STREAM = "wec/t8"

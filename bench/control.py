@@ -77,7 +77,7 @@ rules:
 def _raw_answerer(endpoint: str, ready: Any, stop: Any) -> None:
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     s = zenoh.open(client_config([endpoint]))
     q = s.declare_queryable("raw/q", lambda query: query.reply("raw/q", b"ok"))
@@ -92,7 +92,7 @@ def _raw_middle(endpoint: str, ready: Any, stop: Any, out: Any) -> None:
 
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     s = zenoh.open(client_config([endpoint]))
     todo: queue.SimpleQueue[int] = queue.SimpleQueue()
@@ -119,7 +119,7 @@ def _raw_middle(endpoint: str, ready: Any, stop: Any, out: Any) -> None:
 def raw_latencies(endpoint: str, events: int, hz: float, say: Progress) -> list[int]:
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     ctx = mp.get_context("spawn")
     stop = ctx.Event()
@@ -169,10 +169,10 @@ def rule_latencies(
     """Publish A's batches, a crossing each 1/hz s; returns the first-sample times sent."""
     import zenoh
 
-    from edge.keys import SiteKeys
-    from edge.wire import BatchEncoder, encode_u64
-    from edge.zenoh_session import client_config
-    from ptp.quality import UNSYNCED
+    from fleetdaq.contract.keys import SiteKeys
+    from fleetdaq.contract.wire import BatchEncoder, encode_u64
+    from fleetdaq.ptp.quality import UNSYNCED
+    from fleetdaq.runtime.zenoh_session import client_config
 
     s = zenoh.open(client_config([endpoint]))
     pub = s.declare_publisher(SiteKeys("ctlbench").data("a", "s"))
@@ -197,8 +197,8 @@ def answered(data: Path) -> list[tuple[int, float]]:
     """(answered_ns, value) of every applied command to b/relay, from the recording."""
     from mcap.reader import make_reader
 
-    from edge.cdr import decode
-    from edge.messages import CommandRecord
+    from fleetdaq.contract.cdr import decode
+    from fleetdaq.contract.messages import CommandRecord
 
     out = []
     for session in sessions(data):
@@ -259,7 +259,7 @@ def main() -> None:
         # The request alone, and the CLI.
         import zenoh
 
-        from edge.zenoh_session import client_config
+        from fleetdaq.runtime.zenoh_session import client_config
 
         s = zenoh.open(client_config([endpoint]))
         request: list[int] = []

@@ -290,7 +290,7 @@ def write_site(tmp: Path, text: str, name: str) -> Path:
     """`text` (SITE or DECOY_SITE) as `tmp`/`name`, its users file beside it."""
     from argon2 import PasswordHasher
 
-    from hub.web.users import write_users
+    from fleetdaq.hub.live.web.users import write_users
 
     users = tmp / "users"
     if not users.exists():

@@ -37,7 +37,7 @@ from pathlib import Path
 # This folder is sys.path[0] and holds edge.py, which would shadow the `edge` package: import
 # the package with the folder off the path, then put the folder back for `_common`.
 sys.path.remove(str(Path(__file__).resolve().parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -75,15 +75,15 @@ from _common import (
     wait_until,
 )
 
-from edge.config.node import SpoolConfig
-from edge.drivers.base import Block
-from edge.drivers.wave_sim import WaveSim, WaveSimStream
-from edge.event_publisher import EventPublisher
-from edge.keys import SiteKeys
-from edge.spool import StreamSpool
-from edge.stream_loop import StreamLoop
-from edge.zenoh_session import client_config, router_config
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.node import SpoolConfig
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.edge.drivers.base import Block
+from fleetdaq.edge.drivers.wave_sim import WaveSim, WaveSimStream
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.edge.stream_loop import StreamLoop
+from fleetdaq.ptp.quality import UNSYNCED
+from fleetdaq.runtime.zenoh_session import client_config, router_config
 
 TARGET_CPU_S_PER_MSAMPLE = 0.05
 TARGET_AFTER_DRIVER_RATIO = 2.0

@@ -12,8 +12,8 @@ all connecting to one hub on a free port of 127.0.0.1. Then:
 - the real hub runs as its own process (``python -m fleetdaq hub --config ... --summary ...``),
   recording zstd MCAP into a temporary folder (deleted afterwards unless --keep);
 - K edge-host processes (this script with ``--edge-host``) each run N/K real
-  ``edge.agent.EdgeAgent`` instances: every agent has its own Zenoh client session, spool folder,
-  node name and keys, stream loop, replay, health publisher and liveliness token, exactly as
+  ``fleetdaq.edge.agent.EdgeAgent`` instances: every agent has its own Zenoh client session, spool
+  folder, node name and keys, stream loop, replay, health publisher and liveliness token, exactly as
   ``fleetdaq edge`` runs one (hosting several per process only saves interpreters: a Pi runs one);
 - once every edge host says all its streams publish and the hub's status shows all N nodes
   alive with data, the steady window of --seconds starts: hub CPU (psutil, % of one core),
@@ -55,7 +55,7 @@ from pathlib import Path
 # This folder is sys.path[0] and holds edge.py, which would shadow the `edge` package: import
 # the package with the folder off the path, then put the folder back for `_common`.
 sys.path.remove(str(Path(__file__).resolve().parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -129,8 +129,8 @@ def edge_host(config: Path, nodes: list[str], spool: Path, args: argparse.Namesp
     """
     import logging
 
-    from edge.agent import EdgeAgent
-    from edge.config.load import parse_config
+    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.edge.agent import EdgeAgent
 
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     stop = threading.Event()
@@ -294,8 +294,8 @@ def _threads_cpu(proc: Any) -> dict[str, float]:
 
 
 def _hub_status(session: Any) -> dict[str, Any] | None:
-    from edge.keys import SiteKeys
-    from hub.status import query_status
+    from fleetdaq.contract.keys import SiteKeys
+    from fleetdaq.hub.live.status import query_status
 
     return query_status(session, SiteKeys(SITE), 3.0)
 
@@ -304,7 +304,7 @@ def wait_hub_sees_all(port: int, n: int, timeout: float, log: Progress) -> float
     """Wait until the hub's status shows all N nodes alive and every stream with batches."""
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     session = zenoh.open(client_config([endpoint(port)], timeout_ms=10_000))
     t0 = time.monotonic()
@@ -355,7 +355,7 @@ def read_back(
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
-    from edge.wire import read_header
+    from fleetdaq.contract.wire import read_header
 
     rb = Readback()
     files = sorted(data_dir.rglob("*.mcap"))

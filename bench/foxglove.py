@@ -13,8 +13,8 @@ Target: the client costs the hub at most 5 % more CPU, in percent of one core (p
 top's scale: 3 % -> 8 % would be the limit). Also reported: on / off as a ratio (the hub at this
 load uses only a few percent of a core, so the ratio says more about the baseline than the
 bridge), the messages the client received per second, that the recording never gapped, and
-the part of the hub's CPU that the live view's front (`hub.foxglove.front`, which copies every
-byte between the client and the SDK's server) took while subscribed.
+the part of the hub's CPU that the live view's front (`fleetdaq.hub.live.foxglove.front`, which
+copies every byte between the client and the SDK's server) took while subscribed.
 
 Progress on stderr; the last line on stdout is one JSON object: figures, targets, met.
 """
@@ -63,7 +63,8 @@ def _cpu_s(p: psutil.Process) -> float:
 
 
 def _thread_cpu_s(p: psutil.Process, name: str) -> float:
-    """CPU seconds of `p`'s threads the system names `name` (`edge.threads.NamedThread`)."""
+    """CPU seconds of `p`'s threads the system names `name`
+    (`fleetdaq.runtime.threads.NamedThread`)."""
     total = 0.0
     for t in p.threads():
         try:

@@ -1,6 +1,6 @@
 """Backlog drain after a simulated outage at T8 rate, and live latency while it drains.
 
-The outage is simulated by filling a real edge spool (edge.spool.StreamSpool) with what one
+The outage is simulated by filling a real edge spool (fleetdaq.edge.spool.StreamSpool) with what one
 T8 at 8 x 40 kS/s acquires in `--minutes` (default 10) while the hub is unreachable: 100 ms
 batches of noisy float64, timestamped over the past minutes, none acked. Then a hub and that
 edge start as separate processes; the edge acquires live and replays the backlog
@@ -34,11 +34,11 @@ import zenoh
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from edge.keys import SiteKeys  # noqa: E402
-from edge.spool import StreamSpool  # noqa: E402
-from edge.wire import BatchEncoder, read_header  # noqa: E402
-from edge.zenoh_session import client_config  # noqa: E402
-from ptp.quality import UNSYNCED  # noqa: E402
+from fleetdaq.contract.keys import SiteKeys  # noqa: E402
+from fleetdaq.contract.wire import BatchEncoder, read_header  # noqa: E402
+from fleetdaq.edge.spool import StreamSpool  # noqa: E402
+from fleetdaq.ptp.quality import UNSYNCED  # noqa: E402
+from fleetdaq.runtime.zenoh_session import client_config  # noqa: E402
 
 RATE = 40_000
 SCANS = 4_000  # 100 ms

@@ -35,7 +35,7 @@ from pathlib import Path
 # an installed copy of fleetdaq.
 sys.path.remove(str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -62,8 +62,8 @@ from _common import (
 )
 
 import fleetdaq.read as fr
-from edge.config.hub import RecorderConfig
-from hub.session import RecordingSession
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import RecordingSession
 
 REPO = Path(__file__).resolve().parent.parent
 TARGET_VS_MCAP_ROS2 = 20.0

@@ -38,7 +38,7 @@ from pathlib import Path
 # This folder is sys.path[0] and holds edge.py, which would shadow the `edge` package: import
 # the package with the folder off the path, then put the folder back for `_common`.
 sys.path.remove(str(Path(__file__).resolve().parent))
-import edge  # noqa: F401
+import fleetdaq.edge  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -75,10 +75,10 @@ from _common import (
 )
 from mcap.writer import CompressionType, Writer
 
-from edge.config.load import parse_config
-from edge.keys import SiteKeys
-from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
-from hub.session import topic_of
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+from fleetdaq.hub.recording.session import topic_of
 
 TARGET_MB_PER_S = 100.0
 TARGET_CPU_RATIO = 1.5
@@ -114,14 +114,14 @@ def publisher_main(
     """One edge process: pool -> client session -> put until told to stop or done."""
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     node = node_name(index)
     cfg = t8_stream(parse_config(yaml_text, "<bench>"), node)
     pool = PayloadPool(cfg, node, args.pool, _seed(index))
     tls = None
     if args.pki:
-        from edge.security import TlsFiles
+        from fleetdaq.runtime.security import TlsFiles
 
         pki = Path(args.pki)
         stem = pki / "nodes" / node
@@ -238,7 +238,7 @@ def run_hub(
     log: Progress,
     limits: dict[str, tuple[float, float, float, float]] | None = None,
 ) -> HubRun:
-    from hub.runtime import HubRuntime
+    from fleetdaq.hub.runtime import HubRuntime
 
     port = free_port()
     ep = endpoint(port)

@@ -35,10 +35,10 @@ from pathlib import Path
 sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge` package
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from hub.bus import EventBus
-from hub.read_model import ReadModel
-from hub.refused_traffic import RefusedTraffic
-from hub.router_log import RouterLogTap
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.routing.refused_traffic import RefusedTraffic
+from fleetdaq.hub.routing.router_log import RouterLogTap
 
 AUTHORIZED = (
     b"2026-11-28T09:15:48.783414Z TRACE  rx-1 ThreadId(09) "

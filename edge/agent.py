@@ -5,11 +5,12 @@ the background and attaches the publishers when it answers. It publishes typed n
 (`NodeHealth`) about once a second, relays the hub's acks to the spools (refusing any ack for a
 sequence not sent yet), and holds a liveliness token so the hub sees the node come and go.
 
-Its events are spooled and acked like batches (`edge.event_publisher`, spool folder ``events``);
+Its events are spooled and acked like batches (`fleetdaq.edge.event_publisher`, spool folder
+``events``);
 typed health is not: it is a state, sent only while the hub is reachable, and its counters are
 totals, so the first health after an outage tells all that the missed ones would have.
 
-Its outputs (`edge.outputs`) start at their initial values in the safe state; the queryable
+Its outputs (`fleetdaq.edge.outputs`) start at their initial values in the safe state; the queryable
 that answers commands and the hub-heartbeat watch are attached with the session. Interlocks run
 in the stream loops, so they hold whether or not the hub is there.
 """
@@ -25,29 +26,29 @@ from typing import Any
 
 import zenoh
 
-from edge import __version__
-from edge.cdr import encode
-from edge.certificate_dates import check_dates, warn_days
-from edge.config.site import SiteConfig
-from edge.display import DisplayLoop, create_displays
-from edge.drivers.base import DriverHealth
-from edge.drivers.shared import SharedDevices
-from edge.drivers.table import create_driver
-from edge.errors import DriverError
-from edge.event_publisher import EventPublisher
-from edge.host_metrics import HostMetricsReader
-from edge.keys import EVENTS_STREAM, SiteKeys
-from edge.messages import KeyValue, NodeHealth, StreamHealth
-from edge.outputs import OutputService
-from edge.paths import default_spool_dir
-from edge.security import SecretFileError, TlsFiles, node_tls, read_certificate
-from edge.spool import StreamSpool
-from edge.stream_loop import StreamLoop
-from edge.systemd import Systemd
-from edge.threads import NamedThread
-from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
-from edge.wire import decode_mark
-from edge.zenoh_session import client_config
+from fleetdaq import __version__
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.keys import EVENTS_STREAM, SiteKeys
+from fleetdaq.contract.messages import KeyValue, NodeHealth, StreamHealth
+from fleetdaq.contract.wire import decode_mark
+from fleetdaq.edge.display import DisplayLoop, create_displays
+from fleetdaq.edge.drivers.base import DriverHealth
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.table import create_driver
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.outputs import OutputService
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.edge.stream_loop import StreamLoop
+from fleetdaq.edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor, make_time_sync_monitor
+from fleetdaq.runtime.certificate_dates import check_dates, warn_days
+from fleetdaq.runtime.host_metrics import HostMetricsReader
+from fleetdaq.runtime.paths import default_spool_dir
+from fleetdaq.runtime.security import SecretFileError, TlsFiles, node_tls, read_certificate
+from fleetdaq.runtime.systemd import Systemd
+from fleetdaq.runtime.threads import NamedThread
+from fleetdaq.runtime.zenoh_session import client_config
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -298,7 +299,7 @@ class EdgeAgent:
 
     def _check_certificates(self, events: EventPublisher) -> None:
         """With TLS: when its pair or the CA ends into its health; what is wrong with their
-        dates as events (`edge.certificate_dates`)."""
+        dates as events (`fleetdaq.runtime.certificate_dates`)."""
         if self.tls is None:
             return
         mine, ca = read_certificate(self.tls.cert), read_certificate(self.tls.ca)

@@ -25,8 +25,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from edge.messages import OutputCommand
-from edge.schema import OutputBase
+from fleetdaq.contract.messages import OutputCommand
+from fleetdaq.contract.schema import OutputBase
 
 MAX_PULSE_S = 3600.0
 
@@ -34,7 +34,7 @@ MAX_PULSE_S = 3600.0
 @dataclass(frozen=True, slots=True)
 class Refusal:
     reason: str
-    """One of `edge.messages.REFUSALS`."""
+    """One of `fleetdaq.contract.messages.REFUSALS`."""
     message: str
 
 

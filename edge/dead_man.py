@@ -19,10 +19,10 @@ import threading
 import time
 from collections.abc import Callable
 
-from edge.cdr import decode
-from edge.errors import WireError
-from edge.messages import HubHeartbeat
-from edge.threads import NamedThread
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.messages import HubHeartbeat
+from fleetdaq.runtime.threads import NamedThread
 
 
 class HubWatch:

@@ -7,7 +7,7 @@ returns one `DisplayLoop` per display: a thread that renders the lines from
 ``latest(stream, channel)`` at `refresh_hz` and sends changed rows to the LCD. A display is a
 sink: when its bus fails it retries a bounded number of times per refresh, then raises an
 event, keeps trying at the refresh rate, and raises another event when it works again; it
-never touches acquisition. Line syntax: `edge.display_text`.
+never touches acquisition. Line syntax: `fleetdaq.edge.display_text`.
 """
 
 from __future__ import annotations
@@ -18,16 +18,16 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from edge.display_text import Latest, parse_line
-from edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay
-from edge.drivers.i2cbus import load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.table import DISPLAYS, load_sim
-from edge.errors import DriverError
-from edge.threads import NamedThread
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.edge.display_text import Latest, parse_line
+from fleetdaq.edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay
+from fleetdaq.edge.drivers.i2cbus import load_smbus2, open_bus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.table import DISPLAYS, load_sim
+from fleetdaq.runtime.threads import NamedThread
 
 if TYPE_CHECKING:
-    from edge.config.node import NodeConfig
+    from fleetdaq.contract.config.node import NodeConfig
 
 log = logging.getLogger("fleetdaq.display")
 
@@ -141,7 +141,7 @@ class DisplayLoop:
 
 def create_displays(node_cfg: NodeConfig, latest: Latest, emit: Emit) -> list[DisplayLoop]:
     """One DisplayLoop per display of the node (not started); a display with `sim:` runs on
-    its simulated transport (from `edge.drivers.table`), without the LCD's start-up waits.
+    its simulated transport (from `fleetdaq.edge.drivers.table`), without the LCD's start-up waits.
 
     Raises:
         DriverUnavailable: a real (not simulated) display needs smbus2 and it is missing.

@@ -1,14 +1,14 @@
 """An edge's system messages: `fleetdaq_msgs/msg/Event` on ``.../<node>/events``, and its log.
 
 With a spool (the agent's), events are delivered like batches: each is appended to the node's
-event spool (`edge.spool.StreamSpool`, folder ``events``) with the next sequence number before
-it is published, and stays there until the hub acks it (``.../ack/events``) as written to
-events.log and the recording. A replay thread sends the unacked ones again, oldest first, as
-soon as the hub starts to listen (a connection, the hub back after an outage), and again while
-the oldest is older than `replay_after_s`; the hub takes them in sequence
-order and ignores duplicates (`hub.event_delivery`). So an event raised during a hub outage, or
-before an edge restart during one, reaches the hub with its original time. What a full spool
-drops is counted and raised as an ``events_dropped`` event.
+event spool (`fleetdaq.edge.spool.StreamSpool`, folder ``events``) with the next sequence number
+before it is published, and stays there until the hub acks it (``.../ack/events``) as written to
+events.log and the recording. A replay thread sends the unacked ones again, oldest first, as soon as
+the hub starts to listen (a connection, the hub back after an outage), and again while the oldest is
+older than `replay_after_s`; the hub takes them in sequence order and ignores duplicates
+(`fleetdaq.hub.nodes.event_delivery`). So an event raised during a hub outage, or before an edge
+restart during one, reaches the hub with its original time. What a full spool drops is counted and
+raised as an ``events_dropped`` event.
 
 Without a spool (tools, tests) events wait in a bounded memory queue until the hub listens.
 """
@@ -23,19 +23,19 @@ from typing import Any
 
 import zenoh
 
-from edge.cdr import encode
-from edge.messages import make_event
-from edge.spool import StreamSpool
-from edge.threads import NamedThread
-from edge.wire import encode_event_mark
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.messages import make_event
+from fleetdaq.contract.wire import encode_event_mark
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.edge")
 
 LISTEN_POLL_S = 0.2
 """How often the replay thread looks whether the hub listens (its subscription matches)."""
 REPLAY_BATCH = 500
-"""Events re-sent in one replay pass: below the hub's per-node burst (`hub.node_watch`), so a
-backlog is never taken for a flood; the next pass follows the ack."""
+"""Events re-sent in one replay pass: below the hub's per-node burst (`fleetdaq.hub.nodes.watch`),
+so a backlog is never taken for a flood; the next pass follows the ack."""
 
 
 class EventPublisher:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from edge.config.node_control import EdgeInterlockConfig
+from fleetdaq.contract.config.node_control import EdgeInterlockConfig
 
 log = logging.getLogger("fleetdaq.edge")
 

@@ -9,12 +9,12 @@ import contextlib
 import math
 from dataclasses import dataclass
 
-from edge.command_check import OutputView
-from edge.drivers.base import OutputDriver
-from edge.drivers.pacing import TimeSource
-from edge.errors import DriverError
-from edge.messages import OutputState
-from edge.schema import OutputBase
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.messages import OutputState
+from fleetdaq.contract.schema import OutputBase
+from fleetdaq.edge.command_check import OutputView
+from fleetdaq.edge.drivers.base import OutputDriver
+from fleetdaq.edge.drivers.pacing import TimeSource
 
 REOPEN_FIRST_S = 0.5
 REOPEN_MAX_S = 30.0

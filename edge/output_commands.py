@@ -1,5 +1,5 @@
 """What the edge answers to one command: decode it, answer a replay as before, check it
-(`edge.command_check`), do it on the output's device, build the `OutputReply`, raise the
+(`fleetdaq.edge.command_check`), do it on the output's device, build the `OutputReply`, raise the
 event. Called by the output service's worker thread only.
 
 A command id seen before with the same command (a retry, or a replay of captured bytes) is
@@ -12,7 +12,7 @@ command is too old by then, so its replay is refused `too_old` and still not app
 With the memory full of ids still young enough, a new command is refused (not_allowed, busy)
 rather than forget one that could still be replayed. Not remembered: reads (they move
 nothing), and refusals before a command could be read (a payload that is not an
-OutputCommand, requester text that breaks `edge.requester_text`, a command on another
+OutputCommand, requester text that breaks `fleetdaq.contract.requester_text`, a command on another
 output's key).
 """
 
@@ -25,15 +25,15 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Protocol
 
-from edge.cdr import decode, encode
-from edge.command_check import NodeView, Refusal, age_limit_s, check_command
-from edge.drivers.pacing import TimeSource
-from edge.errors import DriverError, WireError
-from edge.event_publisher import EventPublisher
-from edge.interlocks import Interlocks
-from edge.messages import OutputCommand, OutputReply
-from edge.output_channel import OutputChannel, Pulse
-from edge.requester_text import text_problem
+from fleetdaq.contract.cdr import decode, encode
+from fleetdaq.contract.errors import DriverError, WireError
+from fleetdaq.contract.messages import OutputCommand, OutputReply
+from fleetdaq.contract.requester_text import text_problem
+from fleetdaq.edge.command_check import NodeView, Refusal, age_limit_s, check_command
+from fleetdaq.edge.drivers.pacing import TimeSource
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.interlocks import Interlocks
+from fleetdaq.edge.output_channel import OutputChannel, Pulse
 
 REPLY_MEMORY = 10_000
 """Command ids whose reply is kept at most (each for as long as its command could be applied)."""

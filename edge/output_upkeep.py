@@ -12,12 +12,12 @@ import logging
 import math
 from typing import Protocol
 
-from edge.config.node_control import ControlConfig
-from edge.drivers.base import HardwareWatchdog, WithWatchdog
-from edge.drivers.pacing import TimeSource
-from edge.errors import DriverError
-from edge.event_publisher import EventPublisher
-from edge.output_channel import OutputChannel
+from fleetdaq.contract.config.node_control import ControlConfig
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.edge.drivers.base import HardwareWatchdog, WithWatchdog
+from fleetdaq.edge.drivers.pacing import TimeSource
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.output_channel import OutputChannel
 
 
 class NodeState(Protocol):

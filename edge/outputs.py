@@ -4,11 +4,11 @@ readback and the devices' hardware watchdogs.
 One queryable on ``fleetdaq/<site>/<node>/out/*`` answers every command with an
 `OutputReply` (applied with the readback, or refused with one reason). The Zenoh callback only
 parses the key and queues the query (a full queue is refused at once: ``not_allowed``, busy);
-one worker thread makes every device call, in order: commands (`edge.output_commands`), the
+one worker thread makes every device call, in order: commands (`fleetdaq.edge.output_commands`), the
 end of pulses, safe values (heartbeat lost, interlocks, start and stop) and readback polls
-(`edge.output_upkeep`). Nothing a query carries
-can stop the queryable or the worker: every payload is decoded in full (`edge.cdr`), checked
-(`edge.command_check`), and anything unexpected is refused and counted.
+(`fleetdaq.edge.output_upkeep`). Nothing a query carries
+can stop the queryable or the worker: every payload is decoded in full (`fleetdaq.contract.cdr`),
+checked (`fleetdaq.edge.command_check`), and anything unexpected is refused and counted.
 
 A command id seen before is answered with the reply it got then (the last 1000 ids), so a
 retried command is applied at most once; the same id with a different command is refused.
@@ -23,23 +23,23 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from edge.cdr import decode, encode
-from edge.command_check import Refusal
-from edge.config.node import NodeConfig
-from edge.dead_man import HubWatch
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.drivers.table import create_output
-from edge.errors import WireError
-from edge.event_publisher import EventPublisher
-from edge.interlocks import Change, Interlocks
-from edge.keys import Kind, SiteKeys
-from edge.messages import HubHeartbeat, OutputCommand, OutputState
-from edge.output_channel import OutputChannel, Pulse
-from edge.output_commands import CommandDesk
-from edge.output_upkeep import Upkeep
-from edge.schema import NAME
-from edge.threads import NamedThread
+from fleetdaq.contract.cdr import decode, encode
+from fleetdaq.contract.config.node import NodeConfig
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.keys import Kind, SiteKeys
+from fleetdaq.contract.messages import HubHeartbeat, OutputCommand, OutputState
+from fleetdaq.contract.schema import NAME
+from fleetdaq.edge.command_check import Refusal
+from fleetdaq.edge.dead_man import HubWatch
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.table import create_output
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.interlocks import Change, Interlocks
+from fleetdaq.edge.output_channel import OutputChannel, Pulse
+from fleetdaq.edge.output_commands import CommandDesk
+from fleetdaq.edge.output_upkeep import Upkeep
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.edge")
 

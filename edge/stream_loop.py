@@ -19,18 +19,18 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from edge.config.node import SpoolConfig
-from edge.device_time import DeviceTimeFit, Restart
-from edge.drivers.base import Driver
-from edge.drivers.table import StreamConfig, create_driver
-from edge.errors import DriverError
-from edge.event_publisher import EventPublisher
-from edge.keys import SiteKeys
-from edge.spool import StreamSpool
-from edge.systemd import Beat
-from edge.threads import NamedThread
-from edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
-from edge.wire import BatchEncoder, encode_mark
+from fleetdaq.contract.config.node import SpoolConfig
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.wire import BatchEncoder, encode_mark
+from fleetdaq.edge.device_time import DeviceTimeFit, Restart
+from fleetdaq.edge.drivers.base import Driver
+from fleetdaq.edge.drivers.table import StreamConfig, create_driver
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
+from fleetdaq.runtime.systemd import Beat
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -104,7 +104,8 @@ class StreamLoop:
         self.hub_unreachable = threading.Event()
         """Set by the agent when its first attempt to reach the hub failed."""
         self.beat = Beat(f"acquisition of {name}")
-        """Shows the loop is alive: the agent hands it to systemd's watchdog (`edge.systemd`)."""
+        """Shows the loop is alive: the agent hands it to systemd's watchdog
+        (`fleetdaq.runtime.systemd`)."""
         self._stop = threading.Event()
         self._thread = NamedThread(target=self._run, name=f"stream-{name}", daemon=True)
         self._replayer = NamedThread(target=self._replay, name=f"replay-{name}", daemon=True)

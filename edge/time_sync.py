@@ -1,7 +1,7 @@
 """Time-sync monitoring: is the host clock (CLOCK_REALTIME) disciplined to the grandmaster?
 
-Not to be confused with `edge.device_time` (fitting a device's own clock to the host clock) or
-`edge.drivers.pacing.TimeSource` (where a driver reads the time, virtual in tests).
+Not to be confused with `fleetdaq.edge.device_time` (fitting a device's own clock to the host clock)
+or `fleetdaq.edge.drivers.pacing.TimeSource` (where a driver reads the time, virtual in tests).
 
 `make_time_sync_monitor` builds the monitor a node's config asks for. The agent reads `quality`
 for every batch (cheap: a field read) and puts `message()` into node health; the monitor polls
@@ -17,13 +17,12 @@ import threading
 from collections.abc import Callable
 from typing import Protocol
 
-from edge.config.node import ClockConfig, NodeConfig
-from edge.messages import TimeSyncStatus
-from edge.threads import NamedThread
-from ptp.checks import Thresholds, defaults_for
-from ptp.quality import UNSYNCED, ClockQuality
-from ptp.reader import ChronyReader, Ptp4lReader, Reader
-from ptp.status import (
+from fleetdaq.contract.config.node import ClockConfig, NodeConfig
+from fleetdaq.contract.messages import TimeSyncStatus
+from fleetdaq.ptp.checks import Thresholds, defaults_for
+from fleetdaq.ptp.quality import UNSYNCED, ClockQuality
+from fleetdaq.ptp.reader import ChronyReader, Ptp4lReader, Reader
+from fleetdaq.ptp.status import (
     GRANDMASTER_CHANGED,
     STATE_TAGS,
     Level,
@@ -32,6 +31,7 @@ from ptp.status import (
     format_ns,
     grandmaster_change_message,
 )
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.clock")
 
@@ -94,7 +94,7 @@ _STATE_LEVEL = {
 
 
 class PollingTimeSyncMonitor:
-    """Polls a `ptp.reader` every `poll_s` on its own thread; `quality` and `message()` are
+    """Polls a `fleetdaq.ptp.reader` every `poll_s` on its own thread; `quality` and `message()` are
     the latest reading (start: UNSYNCED until the first reading)."""
 
     def __init__(self, reader: Reader, emit: Emit, poll_s: float = 0.5) -> None:

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from edge.certificate_dates import (
+from fleetdaq.runtime.certificate_dates import (
     DAY_NS,
     HUB_AGAIN,
     ROTATE,
@@ -25,10 +25,10 @@ from edge.certificate_dates import (
     warn_days,
     when_it_ends,
 )
-from edge.security import read_certificate
+from fleetdaq.runtime.security import read_certificate
 
 if TYPE_CHECKING:
-    from edge.config.site import SiteConfig
+    from fleetdaq.contract.config.site import SiteConfig
 
 STATES = ("ok", "not_permitted", "expiring", "expired", "not_yet_valid", "foreign", "unreadable")
 """From fine to worst. ``not_permitted``: whoever checks may not read it (the PKI folder is the

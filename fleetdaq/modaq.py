@@ -35,7 +35,7 @@ from typing import Any
 
 import yaml
 
-from edge.schema import CHANNEL_NAME, NAME, RESERVED_STREAM_NAMES
+from fleetdaq.contract.schema import CHANNEL_NAME, NAME, RESERVED_STREAM_NAMES
 
 T8_AIN_RANGE_V = 11.0
 """AIN_ALL_RANGE = 0 selects the T8's ±11 V range (T-series datasheet 14.3.2)."""
@@ -384,8 +384,8 @@ def _render(imp: _Import, recorder: list[str]) -> str:
 
 def check_site(text: str, source: str) -> None:
     """Raise NotModaqConfig unless `text` passes the same check as `fleetdaq check`."""
-    from edge.config.load import parse_config
-    from edge.errors import ConfigError
+    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.contract.errors import ConfigError
 
     try:
         parse_config(text, source)

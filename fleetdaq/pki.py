@@ -11,7 +11,7 @@ Layout of a PKI folder (keys 0600, the folder 0700)::
     operators/<name>.crt  .key        one per person using the CLI
 
 Nothing is ever overwritten without ``force``. Mutual TLS and the access control list built from
-these names are in `edge.zenoh_session` and `hub.acl`.
+these names are in `fleetdaq.runtime.zenoh_session` and `fleetdaq.hub.routing.acl`.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from edge.keys import HUB
-from edge.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX, check_private_file
+from fleetdaq.contract.keys import HUB
+from fleetdaq.runtime.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX, check_private_file
 
 Role = Literal["view", "control"]
 NAME = re.compile(r"^[a-z][a-z0-9_-]{0,62}$")

@@ -26,7 +26,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from edge.messages import AlarmState, Event, NodeHealth
 from fleetdaq.analysis.errors import (
     AnalysisError,
     BadWindow,
@@ -38,6 +37,7 @@ from fleetdaq.analysis.errors import (
 from fleetdaq.analysis.files import Source
 from fleetdaq.analysis.recording import Recording, SessionInfo, StreamInfo
 from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
+from fleetdaq.contract.messages import AlarmState, Event, NodeHealth
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -6,8 +6,7 @@ is dropped *for that subscriber only*, counted, and raised as a ``bus_overflow``
 others (at most once per `overflow_report_s` per subscriber, with the count). So a slow or
 failing subscriber (an e-mail notifier waiting for a dead server, a dashboard) never delays the
 recorder, its acks, or any other subscriber. A handler that raises is logged and counted; the
-subscriber goes on with the next event.
-"""
+subscriber goes on with the next event."""
 
 from __future__ import annotations
 
@@ -19,8 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from edge.messages import Event, make_event
-from edge.threads import NamedThread
+from fleetdaq.contract.messages import Event, make_event
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.bus")
 
@@ -37,8 +36,9 @@ def worth_telling(count: int, first: int = 1) -> bool:
 def writable(text: str) -> str:
     """`text` as UTF-8 can write it: a lone surrogate (which no encoder writes) becomes its
     ``\\udXXX`` escape. Requester text is refused before it gets here
-    (`edge.requester_text`); this is the last line of defence, so that a string that slipped
-    through is still recorded, visibly, instead of stopping a log line or a record half way."""
+    (`fleetdaq.contract.requester_text`); this is the last line of defence, so that a string that
+    slipped through is still recorded, visibly, instead of stopping a log line or a record half
+    way."""
     if text.isascii():
         return text
     try:

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from edge.threads import NamedThread
+from fleetdaq.runtime.threads import NamedThread
 
 T = TypeVar("T")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 
-from edge.threads import NamedThread
+from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.hub")
 

@@ -2,9 +2,8 @@
 time, which the services publish and everyone else reads (the demo's table, the status
 request, and later the dashboard and /metrics) without touching a lock or an internal.
 
-Each service replaces its own part whole (one reference swap); `snapshot()` hands out the
-current parts together.
-"""
+Each service replaces its own part whole (one reference swap); `snapshot()` hands out the current
+parts together."""
 
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from edge.messages import Event, NodeHealth
+from fleetdaq.contract.messages import Event, NodeHealth
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,15 +120,16 @@ class HubView:
     """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
     certificates: dict[str, Any] = field(default_factory=dict)
     """With security.tls: this hub's certificate and the site CA's, each ``{path, cn,
-    not_after_ns}`` (`hub.certificates`)."""
+    not_after_ns}`` (`fleetdaq.hub.supervision.certificates`)."""
     rules: dict[str, Any] = field(default_factory=dict)
-    """Every rule's and hub interlock's state (`hub.rules.RuleEngine.states`)."""
+    """Every rule's and hub interlock's state (`fleetdaq.hub.control.rules.RuleEngine.states`)."""
     snapshots: dict[str, Any] = field(default_factory=dict)
-    """The snapshot buffer (`hub.snapshots.SnapshotBuffer.counters`); empty when switched off."""
+    """The snapshot buffer (`fleetdaq.hub.recording.snapshots.SnapshotBuffer.counters`); empty when
+    switched off."""
     commands: dict[str, int] = field(default_factory=dict)
     """Commands sent, applied, refused, timed out."""
     fleet: dict[str, Any] = field(default_factory=dict)
-    """The fleet's time (`hub.fleet_time.FleetView.to_dict`)."""
+    """The fleet's time (`fleetdaq.hub.nodes.fleet_time.FleetView.to_dict`)."""
     recent_events: tuple[Event, ...] = ()
     event_counts: dict[str, int] = field(default_factory=dict)
     refused_keys: tuple[tuple[str, int], ...] = ()
@@ -146,8 +146,8 @@ class HubView:
     bus: tuple[dict[str, Any], ...] = ()
     failures: tuple[tuple[str, str], ...] = ()
     partitions: dict[str, Any] = field(default_factory=dict)
-    """The main hub's view of each partition hub (`hub.partition_watch.PartitionWatch`): alive,
-    when its last report came, its recorder."""
+    """The main hub's view of each partition hub (`fleetdaq.hub.partitions.watch.PartitionWatch`):
+    alive, when its last report came, its recorder."""
     partition_hubs: tuple[NodeView, ...] = ()
     """Each partition hub as the fleet sees a machine (``hub/<name>``): alive (its liveliness
     token) and its own health (CPU, memory, disks, temperature), from `PartitionWatch`."""

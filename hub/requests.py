@@ -16,11 +16,11 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
-from edge.config.security import SecurityConfig
-from edge.requester_text import TextRefused, checked_text, text_problem
-from edge.threads import name_os_thread
-from hub.read_model import to_jsonable
-from hub.router import Router
+from fleetdaq.contract.config.security import SecurityConfig
+from fleetdaq.contract.requester_text import TextRefused, checked_text, text_problem
+from fleetdaq.hub.read_model import to_jsonable
+from fleetdaq.hub.routing.router import Router
+from fleetdaq.runtime.threads import name_os_thread
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -63,7 +63,7 @@ def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
 
 
 def text(req: dict[str, Any], key: str, limit: int = MAX_NOTE_CHARS, default: str = "") -> str:
-    """The request's `key` as requester text (`edge.requester_text`: one line, no lone
+    """The request's `key` as requester text (`fleetdaq.contract.requester_text`: one line, no lone
     surrogate or control character, at most `limit` characters), `default` when empty."""
     try:
         value = checked_text(req.get(key, ""), key, limit)

@@ -2,19 +2,19 @@
 
 Adding a service is one line in `HubRuntime.__init__`'s list. Services share:
 
-- the router (`hub.router`): the Zenoh session;
-- the event bus (`hub.bus`): every event, from the nodes and the hub, to every subscriber on
+- the router (`fleetdaq.hub.routing.router`): the Zenoh session;
+- the event bus (`fleetdaq.hub.bus`): every event, from the nodes and the hub, to every subscriber
+on
   its own thread (the recorder, events.log, the fleet's time view, ...);
-- the read model (`hub.read_model`): snapshots anyone may read (`snapshot()`): the demo's
+- the read model (`fleetdaq.hub.read_model`): snapshots anyone may read (`snapshot()`): the demo's
   table, the status request, the dashboard.
 
 The order matters: the router first (everything talks through it), the bus and events.log next
 (so every later service's events are kept), the recorder before the node watch (health goes
 into the recording), the heartbeat and the status request next (edges and operators see a hub
 only once it records), the dashboard last (its page shows a hub that runs whole, and it is
-the first to stop). Stopping runs the other way, so the recorder drains what reached it after
-the node watch has stopped listening.
-"""
+the first to stop). Stopping runs the other way, so the recorder drains what reached it after the
+node watch has stopped listening."""
 
 from __future__ import annotations
 
@@ -25,41 +25,41 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from edge.config.site import SiteConfig
-from edge.keys import SiteKeys
-from edge.paths import default_data_dir
-from edge.systemd import Systemd
-from hub.alarms.requests import AlarmRequests
-from hub.alarms.supervisor import Supervisor
-from hub.batch_feed import BatchFeed
-from hub.bus import EventBus
-from hub.certificates import CertificateWatch
-from hub.commands import CommandService
-from hub.data_lock import DataFolderClaim, DataFolderLock, Place
-from hub.event_log import EventLog
-from hub.fleet_time import FleetTimeService
-from hub.foxglove.service import FoxgloveLive
-from hub.heartbeat import Heartbeat
-from hub.hub_health import HubHealth
-from hub.live_plots import LivePlots
-from hub.node_watch import NodeWatch
-from hub.notify.service import EmailNotifier
-from hub.partition_live import PartitionLive
-from hub.partition_recorders import FORWARDED, PartitionRecorders
-from hub.partition_snapshots import SnapshotTriggers
-from hub.partition_watch import PartitionWatch
-from hub.read_model import HubView, ReadModel
-from hub.recorder import Recorder
-from hub.recorder_requests import RecorderRequests
-from hub.refused import RefusedKeys
-from hub.refused_traffic import RefusedTraffic
-from hub.router import Router
-from hub.rules import RuleEngine
-from hub.services import ServiceStack
-from hub.snapshots import SnapshotBuffer
-from hub.status import StatusService
-from hub.web.parts import HubParts
-from hub.web.service import WebService
+from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.control.commands import CommandService
+from fleetdaq.hub.control.rules import RuleEngine
+from fleetdaq.hub.live.foxglove.service import FoxgloveLive
+from fleetdaq.hub.live.plots import LivePlots
+from fleetdaq.hub.live.status import StatusService
+from fleetdaq.hub.live.web.parts import HubParts
+from fleetdaq.hub.live.web.service import WebService
+from fleetdaq.hub.nodes.fleet_time import FleetTimeService
+from fleetdaq.hub.nodes.heartbeat import Heartbeat
+from fleetdaq.hub.nodes.refused import RefusedKeys
+from fleetdaq.hub.nodes.watch import NodeWatch
+from fleetdaq.hub.partitions.live import PartitionLive
+from fleetdaq.hub.partitions.recorders import FORWARDED, PartitionRecorders
+from fleetdaq.hub.partitions.snapshots import SnapshotTriggers
+from fleetdaq.hub.partitions.watch import PartitionWatch
+from fleetdaq.hub.read_model import HubView, ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed
+from fleetdaq.hub.recording.data_lock import DataFolderClaim, DataFolderLock, Place
+from fleetdaq.hub.recording.recorder import Recorder
+from fleetdaq.hub.recording.requests import RecorderRequests
+from fleetdaq.hub.recording.snapshots import SnapshotBuffer
+from fleetdaq.hub.routing.refused_traffic import RefusedTraffic
+from fleetdaq.hub.routing.router import Router
+from fleetdaq.hub.services import ServiceStack
+from fleetdaq.hub.supervision.alarms.requests import AlarmRequests
+from fleetdaq.hub.supervision.alarms.supervisor import Supervisor
+from fleetdaq.hub.supervision.certificates import CertificateWatch
+from fleetdaq.hub.supervision.event_log import EventLog
+from fleetdaq.hub.supervision.hub_health import HubHealth
+from fleetdaq.hub.supervision.notify.service import EmailNotifier
+from fleetdaq.runtime.paths import default_data_dir
+from fleetdaq.runtime.systemd import Systemd
 
 log = logging.getLogger("fleetdaq.hub")
 

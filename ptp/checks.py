@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from ptp.chrony import ChronyTracking
-from ptp.datasets import HARDWARE_TIMESTAMPING, PortState, Ptp4lSnapshot
-from ptp.host import KernelClock, TimestampingCaps
-from ptp.status import Check, Level, SyncState, TimeStatus, format_ns
+from fleetdaq.ptp.chrony import ChronyTracking
+from fleetdaq.ptp.datasets import HARDWARE_TIMESTAMPING, PortState, Ptp4lSnapshot
+from fleetdaq.ptp.host import KernelClock, TimestampingCaps
+from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus, format_ns
 
 S = 1_000_000_000
 

@@ -17,7 +17,7 @@ import subprocess
 from dataclasses import dataclass
 from typing import Final
 
-from ptp.errors import ChronyError, ParseError
+from fleetdaq.ptp.errors import ChronyError, ParseError
 
 LEAP_STATUSES: Final = ("Normal", "Insert second", "Delete second", "Not synchronised")
 

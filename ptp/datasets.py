@@ -1,10 +1,9 @@
 """PTP data sets as ptp4l reports them through its management interface (IEEE 1588-2008 §15.5.3
 and linuxptp's non-standard ``*_NP`` IDs), one frozen dataclass per management ID.
 
-Both decoders produce these: `ptp.management` from the binary TLVs, `ptp.pmc` from pmc's text.
-Identities are strings in linuxptp's notation (``4249e1.fffe.1d831c``, ports ``...-1``); time
-values are integer nanoseconds.
-"""
+Both decoders produce these: `fleetdaq.ptp.management` from the binary TLVs, `fleetdaq.ptp.pmc` from
+pmc's text. Identities are strings in linuxptp's notation (``4249e1.fffe.1d831c``, ports ``...-1``);
+time values are integer nanoseconds."""
 
 from __future__ import annotations
 

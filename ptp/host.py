@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass
 from typing import Final
 
-from ptp.errors import PtpError
+from fleetdaq.ptp.errors import PtpError
 
 STA_UNSYNC: Final = 0x0040  # linux/timex.h
 TIME_ERROR: Final = 5  # adjtimex return value: clock not synchronised

@@ -3,14 +3,14 @@
 Why not run ``pmc`` for every poll: the edge polls about twice a second for as long as it runs;
 a subprocess per poll costs a fork/exec and a text parse each time, and pmc binds its own
 socket under /var/run (root only). Here one datagram socket, bound in a private temporary
-directory, sends the GETs and decodes the binary TLVs into `ptp.datasets`. `ptp.pmc` parses
+directory, sends the GETs and decodes the binary TLVs into `fleetdaq.ptp.datasets`.
+`fleetdaq.ptp.pmc` parses
 pmc's text into the same dataclasses, and the tests check both against the same ptp4l.
 
 Wire format: IEEE 1588-2008 §13.3 (common header, 34 bytes), §15.4 (management message:
 target port identity, boundary hops, action), §15.5 (management TLV: type 0x0001, length,
-managementId, data). All fields are big-endian. GETs carry no data (what ``pmc -z`` sends;
-ptp4l accepts both).
-"""
+managementId, data). All fields are big-endian. GETs carry no data (what ``pmc -z`` sends; ptp4l
+accepts both)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Final
 
-from ptp.datasets import (
+from fleetdaq.ptp.datasets import (
     MID,
     TIMESTAMPING,
     CurrentDataSet,
@@ -38,7 +38,7 @@ from ptp.datasets import (
     Ptp4lSnapshot,
     TimeStatusNp,
 )
-from ptp.errors import ManagementError, ManagementTimeout, ParseError
+from fleetdaq.ptp.errors import ManagementError, ManagementTimeout, ParseError
 
 DEFAULT_UDS: Final = "/var/run/ptp4l"
 

@@ -1,6 +1,6 @@
 """linuxptp's ``pmc`` as a second way in: run it, and parse what it prints.
 
-`parse_pmc(text)` turns pmc's text into the same dataclasses `ptp.management` decodes from
+`parse_pmc(text)` turns pmc's text into the same dataclasses `fleetdaq.ptp.management` decodes from
 the binary TLVs. The edge uses the binary client (no process per poll); pmc's text is what
 people paste into tickets, what the tests compare our client with, and a fallback
 (``fleetdaq ptp status --via pmc``).
@@ -24,7 +24,7 @@ import subprocess
 from collections.abc import Callable
 from typing import Final
 
-from ptp.datasets import (
+from fleetdaq.ptp.datasets import (
     MID,
     CurrentDataSet,
     DefaultDataSet,
@@ -35,8 +35,8 @@ from ptp.datasets import (
     Ptp4lSnapshot,
     TimeStatusNp,
 )
-from ptp.errors import ManagementError, ParseError
-from ptp.management import DEFAULT_UDS, Response, snapshot_from
+from fleetdaq.ptp.errors import ManagementError, ParseError
+from fleetdaq.ptp.management import DEFAULT_UDS, Response, snapshot_from
 
 _HEAD = re.compile(
     r"^\s*(?P<source>[0-9a-f]{6}\.[0-9a-f]{4}\.[0-9a-f]{6}-\d+) seq (?P<seq>\d+) "

@@ -19,15 +19,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Protocol
 
-from ptp.checks import Thresholds, defaults_for, evaluate_chrony, evaluate_ptp4l, unreachable
-from ptp.chrony import read_chrony
-from ptp.datasets import HARDWARE_TIMESTAMPING, Ptp4lSnapshot
-from ptp.errors import PtpError
-from ptp.host import KernelClock, TimestampingCaps, phc_time_ns, read_kernel_clock
-from ptp.host import timestamping_caps as read_caps
-from ptp.management import DEFAULT_UDS, Ptp4lClient
-from ptp.pmc import snapshot_via_pmc
-from ptp.status import SyncState, TimeStatus
+from fleetdaq.ptp.checks import (
+    Thresholds,
+    defaults_for,
+    evaluate_chrony,
+    evaluate_ptp4l,
+    unreachable,
+)
+from fleetdaq.ptp.chrony import read_chrony
+from fleetdaq.ptp.datasets import HARDWARE_TIMESTAMPING, Ptp4lSnapshot
+from fleetdaq.ptp.errors import PtpError
+from fleetdaq.ptp.host import KernelClock, TimestampingCaps, phc_time_ns, read_kernel_clock
+from fleetdaq.ptp.host import timestamping_caps as read_caps
+from fleetdaq.ptp.management import DEFAULT_UDS, Ptp4lClient
+from fleetdaq.ptp.pmc import snapshot_via_pmc
+from fleetdaq.ptp.status import SyncState, TimeStatus
 
 
 class Reader(Protocol):

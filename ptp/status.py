@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from typing import Any, Final
 
-from ptp.quality import ClockQuality, ClockState
+from fleetdaq.ptp.quality import ClockQuality, ClockState
 
 
 class Level(IntEnum):

@@ -8,8 +8,8 @@ Server -> client: text frames are JSON with an ``op`` (``serverInfo``, ``adverti
 Client -> server: ``subscribe`` / ``unsubscribe`` (JSON).
 
 It offers the subprotocols Lichtblick offers (``foxglove.websocket.v1``, then
-``foxglove.sdk.v1``); the hub answers either (`hub.foxglove.front`), the second when both.
-"""
+``foxglove.sdk.v1``); the hub answers either (`fleetdaq.hub.live.foxglove.front`), the second when
+both."""
 
 from __future__ import annotations
 

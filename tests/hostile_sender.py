@@ -29,13 +29,13 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from edge.cdr import encode
-from edge.errors import WireError
-from edge.keys import SiteKeys
-from edge.messages import make_event
-from edge.wire import BatchEncoder, encode_u64, read_header
-from edge.zenoh_session import client_config
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import make_event
+from fleetdaq.contract.wire import BatchEncoder, encode_u64, read_header
+from fleetdaq.ptp.quality import UNSYNCED
+from fleetdaq.runtime.zenoh_session import client_config
 
 
 def flip(buf: bytes, rng: random.Random, n: int) -> bytes:

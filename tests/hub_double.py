@@ -35,13 +35,19 @@ REPO = Path(__file__).resolve().parent.parent
 def _serve(args: argparse.Namespace) -> None:
     import zenoh
 
-    from edge import __version__
-    from edge.cdr import decode, encode
-    from edge.errors import WireError
-    from edge.keys import EVENTS_STREAM, SiteKeys
-    from edge.messages import Event, HubHeartbeat, NodeHealth, OutputCommand, OutputReply
-    from edge.wire import decode_event_mark, encode_mark
-    from edge.zenoh_session import router_config
+    from fleetdaq import __version__
+    from fleetdaq.contract.cdr import decode, encode
+    from fleetdaq.contract.errors import WireError
+    from fleetdaq.contract.keys import EVENTS_STREAM, SiteKeys
+    from fleetdaq.contract.messages import (
+        Event,
+        HubHeartbeat,
+        NodeHealth,
+        OutputCommand,
+        OutputReply,
+    )
+    from fleetdaq.contract.wire import decode_event_mark, encode_mark
+    from fleetdaq.runtime.zenoh_session import router_config
 
     keys = SiteKeys(args.site)
     session: Any = zenoh.open(router_config([f"tcp/127.0.0.1:{args.port}"]))

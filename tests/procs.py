@@ -121,8 +121,8 @@ class HubClient:
     def __init__(self, port: int, site: str) -> None:
         import zenoh
 
-        from edge.keys import SiteKeys
-        from edge.zenoh_session import client_config
+        from fleetdaq.contract.keys import SiteKeys
+        from fleetdaq.runtime.zenoh_session import client_config
 
         self.keys = SiteKeys(site)
         # Opening waits for the router at most 20 s; the session reconnects by itself after.
@@ -130,7 +130,7 @@ class HubClient:
 
     def status(self, timeout: float = 2.0) -> dict[str, Any] | None:
         """The hub's status, or None when no hub answers within `timeout` s."""
-        from hub.status import query_status
+        from fleetdaq.hub.live.status import query_status
 
         return query_status(self.session, self.keys, timeout)
 
@@ -156,7 +156,7 @@ class HubClient:
 
 
 def stream_view(status: dict[str, Any], node: str, stream: str) -> dict[str, Any] | None:
-    """One stream's accounting in a hub status (`hub.read_model.StreamView`)."""
+    """One stream's accounting in a hub status (`fleetdaq.hub.read_model.StreamView`)."""
     return next(
         (s for s in status.get("streams", []) if (s["node"], s["stream"]) == (node, stream)),
         None,

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import zenoh
 
-from edge.cdr import decode
-from edge.keys import SiteKeys
-from edge.messages import NodeHealth
-from edge.spool import StreamSpool
-from edge.wire import encode_u64
-from edge.zenoh_session import client_config
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import NodeHealth
+from fleetdaq.contract.wire import encode_u64
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import Proc, free_port, wait_for_port
 
 SITE = """\

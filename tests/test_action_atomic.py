@@ -15,19 +15,19 @@ from pathlib import Path
 
 import pytest
 
-from edge.cdr import encode
-from edge.config.load import parse_config
-from edge.messages import EVENT_TYPE, Event, make_event
-from hub.alarms.definitions import build_definitions
-from hub.alarms.journal import Journal
-from hub.alarms.states import AlarmStatus, Change, State
-from hub.alarms.told import told
-from hub.batch_feed import BatchFeed
-from hub.bus import EventBus
-from hub.event_log import EventLog
-from hub.read_model import ReadModel
-from hub.runtime import HubRuntime
-from hub.snapshots import SnapshotBuffer
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.messages import EVENT_TYPE, Event, make_event
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed
+from fleetdaq.hub.recording.snapshots import SnapshotBuffer
+from fleetdaq.hub.runtime import HubRuntime
+from fleetdaq.hub.supervision.alarms.definitions import build_definitions
+from fleetdaq.hub.supervision.alarms.journal import Journal
+from fleetdaq.hub.supervision.alarms.states import AlarmStatus, Change, State
+from fleetdaq.hub.supervision.alarms.told import told
+from fleetdaq.hub.supervision.event_log import EventLog
 from tests.procs import free_port, wait_until
 
 SITE = """\
@@ -186,9 +186,9 @@ def test_an_infinite_value_is_journaled_as_no_value_and_a_record_that_is_not_jso
 def test_a_request_whose_handler_fails_is_still_answered_saying_so():
     import zenoh
 
-    from edge.zenoh_session import client_config
-    from hub.requests import FAILED, Caller, OperatorQueryable
-    from hub.router import Router
+    from fleetdaq.hub.requests import FAILED, Caller, OperatorQueryable
+    from fleetdaq.hub.routing.router import Router
+    from fleetdaq.runtime.zenoh_session import client_config
 
     def handler(raw: bytes, caller: Caller | None) -> dict[str, object]:
         if raw == b"fail":

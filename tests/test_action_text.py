@@ -20,9 +20,9 @@ from typing import Any
 import pytest
 import zenoh
 
-from edge.keys import SiteKeys
-from edge.zenoh_session import client_config
+from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.read import read_alarms
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import REPO, Proc, free_port, wait_for_port, wait_until
 from tests.web.conftest import PASSWORDS, Http, write_cheap_users
 

@@ -14,12 +14,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from edge.config.load import parse_config
-from edge.errors import ConfigError
-from hub.alarms.conditions import MAX_FLIPS_PER_BATCH, Delayed, SampleCondition, StreamScreen
-from hub.alarms.definitions import build_definitions
-from hub.alarms.journal import Journal
-from hub.alarms.kernels import (
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import ConfigError
+from fleetdaq.hub.supervision.alarms.conditions import (
+    MAX_FLIPS_PER_BATCH,
+    Delayed,
+    SampleCondition,
+    StreamScreen,
+)
+from fleetdaq.hub.supervision.alarms.definitions import build_definitions
+from fleetdaq.hub.supervision.alarms.journal import Journal
+from fleetdaq.hub.supervision.alarms.kernels import (
     batch_extremes,
     kernel_error,
     numpy_extremes,
@@ -27,8 +32,8 @@ from hub.alarms.kernels import (
     raw_flips,
     warm_up,
 )
-from hub.alarms.requests import BadRequest, parse_request
-from hub.alarms.states import AlarmStatus, Refused, State
+from fleetdaq.hub.supervision.alarms.requests import BadRequest, parse_request
+from fleetdaq.hub.supervision.alarms.states import AlarmStatus, Refused, State
 
 S = 1_000_000_000
 
@@ -360,7 +365,7 @@ def test_a_good_request_is_taken_as_given():
 
 
 def test_the_alarm_names_the_site_file_knows_are_the_ones_the_hub_builds():
-    from edge.config.alarms import alarm_names
+    from fleetdaq.hub.config.alarms import alarm_names
 
     site = parse_config(SITE, "s.yaml")
     assert alarm_names(site) == {d.name for d in build_definitions(site)}
@@ -395,8 +400,8 @@ def test_each_nodes_certificate_is_watched_from_its_health():
     when the first of its pair and the CA ends, as its health says: days left as the value.
     A stale health still counts (a node whose pair expired cannot connect to say so); none
     without TLS, nothing to judge from a node that cannot tell (0) or was never heard."""
-    from hub.alarms.supervisor import _machine, _node_check
-    from hub.read_model import HubView, NodeView
+    from fleetdaq.hub.read_model import HubView, NodeView
+    from fleetdaq.hub.supervision.alarms.supervisor import _machine, _node_check
 
     plain = {d.name for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
     assert not {n for n in plain if n.startswith("certificate_expiring")}
@@ -446,7 +451,7 @@ def test_each_nodes_certificate_is_watched_from_its_health():
 def test_each_partition_hub_is_watched_like_the_main_hub_down_disk_and_recorder():
     """`node_down/hub/P`, `disk_nearly_full/hub/P`, `recorder/hub/P`, from what the main hub
     knows of the partition (its liveliness and its last report)."""
-    from hub.alarms.supervisor import _partition_check
+    from fleetdaq.hub.supervision.alarms.supervisor import _partition_check
 
     defs = {d.name: d for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
     down, disk, rec = (defs[f"{k}/hub/bay2"] for k in ("node_down", "disk_nearly_full", "recorder"))
@@ -472,8 +477,8 @@ def test_each_partition_hub_is_watched_like_the_main_hub_down_disk_and_recorder(
 def test_batch_extremes_read_a_payloads_own_bytes():
     """As the hub hands them over: a read-only view into the payload (not 8-byte aligned: the
     CDR body starts 4 bytes in), of a smooth wave (a new extreme every few samples)."""
-    from edge.wire import BatchEncoder, batch_values, read_header
-    from ptp.quality import UNSYNCED
+    from fleetdaq.contract.wire import BatchEncoder, batch_values, read_header
+    from fleetdaq.ptp.quality import UNSYNCED
 
     t = np.arange(4000) / 40_000
     data = np.column_stack([np.sin(2 * np.pi * f * t) * (i + 1) for i, f in enumerate(range(1, 9))])
@@ -508,7 +513,7 @@ alarms:
 
 
 def _machine_health(node: str, temp: float, data_free: int) -> Any:
-    from edge.messages import DiskUsage, HostMetrics, NodeHealth, TimeSyncStatus
+    from fleetdaq.contract.messages import DiskUsage, HostMetrics, NodeHealth, TimeSyncStatus
 
     host = HostMetrics(
         cpu_percent=10.0, load_1m=0.1, load_5m=0.1, load_15m=0.1,
@@ -525,8 +530,8 @@ def _machine_health(node: str, temp: float, data_free: int) -> Any:
 def test_a_site_may_alarm_on_a_hubs_own_machine_and_a_partition_hubs():
     """A hub on a buoy overheats like any Pi: `node: hub` (the main hub's machine) and
     `node: hub/<partition>` watch CPU, memory, temperature and the recording disk."""
-    from hub.alarms.supervisor import _machine, _node_check
-    from hub.read_model import HubView, NodeView
+    from fleetdaq.hub.read_model import HubView, NodeView
+    from fleetdaq.hub.supervision.alarms.supervisor import _machine, _node_check
 
     site = parse_config(HUB_MACHINES, "p.yaml")
     defs = {d.name: d for d in build_definitions(site)}

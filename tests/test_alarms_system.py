@@ -20,8 +20,8 @@ import pytest
 import zenoh
 from rosbags.highlevel import AnyReader
 
-from edge.keys import SiteKeys
-from edge.zenoh_session import client_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.notify.smtp_server import Received, SmtpServer, ThrowawayCA
 from tests.procs import REPO, Proc, free_port, wait_for_port
 

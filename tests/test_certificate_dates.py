@@ -1,5 +1,5 @@
-"""What a node says about its certificates' dates (`edge.certificate_dates`), from pairs as
-`fleetdaq pki` makes them and from dates around the edges: fine, ending soon, ended, the CA
+"""What a node says about its certificates' dates (`fleetdaq.runtime.certificate_dates`), from pairs
+as `fleetdaq pki` makes them and from dates around the edges: fine, ending soon, ended, the CA
 first, unreadable, and a machine clock before a certificate starts."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from edge.certificate_dates import DAY_NS, check_dates
-from edge.security import read_certificate
 from fleetdaq.pki import init, issue_node
+from fleetdaq.runtime.certificate_dates import DAY_NS, check_dates
+from fleetdaq.runtime.security import read_certificate
 
 NOW = 1_800_000_000 * 10**9
 

@@ -27,8 +27,8 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 
-from edge.cdr import decode, encode
-from edge.messages import CommandRecord, Event, OutputCommand, OutputReply
+from fleetdaq.contract.cdr import decode, encode
+from fleetdaq.contract.messages import CommandRecord, Event, OutputCommand, OutputReply
 from tests.procs import REPO, HubClient, Proc, free_port, sessions, wait_for_port, wait_until
 from tests.web.conftest import PASSWORDS, Http, write_cheap_users
 

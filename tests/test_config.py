@@ -17,14 +17,14 @@ from typing import get_args
 import numpy as np
 import pytest
 
-from edge.config.load import load_config, parse_config
-from edge.config.site import SiteConfig, demo_config_path, effective_yaml
-from edge.drivers.environment_sim import EnvironmentSimStream
-from edge.drivers.table import DRIVERS, StreamConfig
-from edge.drivers.thermocouple_sim import ThermocoupleSimStream
-from edge.drivers.wave_sim import WaveSimStream
-from edge.errors import ConfigError
-from edge.schema import Channel, Resolution, float32_misfit
+from fleetdaq.contract.config.load import load_config, parse_config
+from fleetdaq.contract.config.site import SiteConfig, demo_config_path, effective_yaml
+from fleetdaq.contract.errors import ConfigError
+from fleetdaq.contract.schema import Channel, Resolution, float32_misfit
+from fleetdaq.edge.drivers.environment_sim import EnvironmentSimStream
+from fleetdaq.edge.drivers.table import DRIVERS, StreamConfig
+from fleetdaq.edge.drivers.thermocouple_sim import ThermocoupleSimStream
+from fleetdaq.edge.drivers.wave_sim import WaveSimStream
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO
@@ -328,7 +328,9 @@ def test_load_config_returns_typed_objects_with_defaults_filled() -> None:
     assert site.site == "bench"
     assert site.description == ""
     assert site.hub.listen == ["tcp/127.0.0.1:7447"]
-    assert site.hub.data_dir is None  # a per-system location (edge.paths), never the cwd
+    assert (
+        site.hub.data_dir is None
+    )  # a per-system location (fleetdaq.runtime.paths), never the cwd
     recorder = site.hub.recorder
     assert (recorder.file_duration_s, recorder.max_file_bytes) == (60.0, None)
     assert (recorder.include, recorder.exclude) == (["*"], [])
@@ -396,7 +398,7 @@ def test_effective_yaml_round_trips_to_an_equal_site_config(path: Path) -> None:
 
 def test_demo_config_path_is_the_shipped_demo_file() -> None:
     # Package data (so an installed wheel has it); config/demo.yaml in the repo links to it.
-    assert demo_config_path() == REPO / "edge" / "config" / "demo.yaml"
+    assert demo_config_path() == REPO / "fleetdaq" / "contract" / "config" / "demo.yaml"
     assert (REPO / "config" / "demo.yaml").resolve() == demo_config_path().resolve()
     assert load_config(demo_config_path()).site == "demo"
 

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from edge.cdr import decode
-from edge.messages import CommandRecord
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.messages import CommandRecord
 from fleetdaq.read import read_stream
 from tests.procs import REPO, HubClient, Proc, free_port, sessions, wait_for_port, wait_until
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hub.session import ACTIVE_SUFFIX
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX
 from tests.procs import REPO, Proc, free_port, sessions, wait_until
 from tests.test_verify import _session
 

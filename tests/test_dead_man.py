@@ -3,9 +3,9 @@ none came for safe_after_s (and only then), back at the next one, junk refused a
 
 from __future__ import annotations
 
-from edge.cdr import encode
-from edge.dead_man import HubWatch
-from edge.messages import HubHeartbeat
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.messages import HubHeartbeat
+from fleetdaq.edge.dead_man import HubWatch
 
 BEAT = encode(HubHeartbeat(1, "0.1.0", "s", 1))
 

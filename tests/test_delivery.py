@@ -32,9 +32,9 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from edge.cdr import decode
-from edge.messages import NodeHealth
-from hub.verify import verify_path
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.messages import NodeHealth
+from fleetdaq.hub.recording.verify import verify_path
 from tests.procs import (
     HubClient,
     Proc,
@@ -148,8 +148,8 @@ class Rig:
         """The edge's next health message (published ~1 Hz on its health key)."""
         import zenoh
 
-        from edge.keys import SiteKeys
-        from edge.zenoh_session import client_config
+        from fleetdaq.contract.keys import SiteKeys
+        from fleetdaq.runtime.zenoh_session import client_config
 
         got: queue.Queue[bytes] = queue.Queue()
         session = zenoh.open(client_config([f"tcp/127.0.0.1:{self.port}"]))
@@ -170,7 +170,7 @@ class Rig:
 
     def spooled(self) -> list[int]:
         """Sequences still in the (stopped) edge's spool: not lost, delivered on next contact."""
-        from edge.spool import StreamSpool
+        from fleetdaq.edge.spool import StreamSpool
 
         sp = StreamSpool(self.tmp / "spool" / "wec" / "t8", 10**12, 10**9)
         try:
@@ -538,10 +538,10 @@ def test_a_full_hub_disk_is_an_event_and_recording_resumes_when_space_returns(
 def test_ten_thousand_malformed_payloads_are_counted_and_good_data_flows(rig: Rig):
     import zenoh
 
-    from edge.keys import SiteKeys
-    from edge.wire import BatchEncoder
-    from edge.zenoh_session import client_config
-    from ptp.quality import UNSYNCED
+    from fleetdaq.contract.keys import SiteKeys
+    from fleetdaq.contract.wire import BatchEncoder
+    from fleetdaq.ptp.quality import UNSYNCED
+    from fleetdaq.runtime.zenoh_session import client_config
 
     hub = rig.hub()
     edge = rig.edge()
@@ -622,7 +622,7 @@ def test_a_wiped_edge_spool_numbers_again_from_0_and_the_hub_records_it_all(rig:
     batches from 0 again. They are new batches, not replays of the ones the hub has: every
     one is recorded and only then acked (before spool epochs the hub took them for
     duplicates, recorded none, and in time acked them away)."""
-    from edge.spool import StreamSpool
+    from fleetdaq.edge.spool import StreamSpool
 
     hub = rig.hub()
     edge = rig.edge("edge1")

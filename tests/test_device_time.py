@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edge.device_time import DeviceTimeFit
+from fleetdaq.edge.device_time import DeviceTimeFit
 
 T0 = 1_795_000_000_000_000_000
 

@@ -1,5 +1,6 @@
 """Events an edge spooled: the hub takes them once and in order, and acks only what is written
-for good (`hub.event_delivery`); the edge keeps them on disk until then (`edge.event_publisher`).
+for good (`fleetdaq.hub.nodes.event_delivery`); the edge keeps them on disk until then
+(`fleetdaq.edge.event_publisher`).
 
 The outage itself, with real hub and edge processes, is in tests/test_events_outage.py.
 """
@@ -9,11 +10,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from edge.cdr import decode
-from edge.event_publisher import EventPublisher
-from edge.messages import Event, make_event
-from edge.spool import StreamSpool
-from hub.event_delivery import EventDelivery, Verdict
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.messages import Event, make_event
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.hub.nodes.event_delivery import EventDelivery, Verdict
 
 EPOCH = 77
 

@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from edge.cdr import decode
-from edge.messages import Event
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.messages import Event
 from tests.procs import HubClient, Proc, free_port, wait_for_port, wait_until
 
 SITE = """\
@@ -43,7 +43,9 @@ nodes:
 OPENS = ", faults: [{kind: open_circuit, at_s: 1}]"
 """The thermocouple opens 1 s after the driver opens it, and stays open."""
 
-_RECORD = struct.Struct("<IQqII")  # edge.spool's record header: magic, seq, time, length, crc
+_RECORD = struct.Struct(
+    "<IQqII"
+)  # fleetdaq.edge.spool's record header: magic, seq, time, length, crc
 _MAGIC = 0x31514446
 LOG_LINE = re.compile(r"^(\S+) +[A-Z]+ +cell/\S+ \[(\w+)\]", re.MULTILINE)
 

@@ -16,9 +16,9 @@ from mcap_ros2.reader import read_ros2_messages
 from rosbags.highlevel import AnyReader
 
 import fleetdaq.read as fr
-from edge.keys import SiteKeys
-from edge.wire import SAMPLE_BATCH32_TYPE, SAMPLE_BATCH_TYPE, BatchEncoder
-from ptp.quality import ClockQuality, ClockState
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.wire import SAMPLE_BATCH32_TYPE, SAMPLE_BATCH_TYPE, BatchEncoder
+from fleetdaq.ptp.quality import ClockQuality, ClockState
 from tests.procs import HubClient, Proc, free_port, sessions, stream_view, wait_for_port
 
 BATCHES = 30

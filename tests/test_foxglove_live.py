@@ -21,19 +21,19 @@ import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 
-from edge.config.load import load_config, parse_config
-from edge.config.site import demo_config_path
-from edge.errors import ConfigError
-from edge.wire import BatchEncoder, read_header
-from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
-from hub.errors import HubError
-from hub.foxglove.decimate import INTERVAL_NS, Decimator, Intervals
-from hub.foxglove.messages import StreamMessages
-from hub.foxglove.service import FoxgloveLive
-from hub.read_model import ReadModel
-from hub.session import topic_of
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import load_config, parse_config
+from fleetdaq.contract.config.site import demo_config_path
+from fleetdaq.contract.errors import ConfigError
+from fleetdaq.contract.wire import BatchEncoder, read_header
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.errors import HubError
+from fleetdaq.hub.live.foxglove.decimate import INTERVAL_NS, Decimator, Intervals
+from fleetdaq.hub.live.foxglove.messages import StreamMessages
+from fleetdaq.hub.live.foxglove.service import FoxgloveLive
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.hub.recording.session import topic_of
+from fleetdaq.ptp.quality import UNSYNCED
 from tests.foxglove_client import FoxgloveClient, Received
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_for_port
 
@@ -373,7 +373,7 @@ def test_wss_with_the_site_cas_hub_pair_and_nothing_in_clear(tmp_path: Path):
     import ssl
 
     from fleetdaq import pki
-    from hub.errors import SecretError
+    from fleetdaq.hub.errors import SecretError
 
     folder = tmp_path / "pki"
     pki.init(folder, "fox", ["127.0.0.1"])

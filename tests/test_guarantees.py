@@ -23,11 +23,11 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 
-from edge.config.load import parse_config
-from edge.spool import StreamSpool
-from hub.bus import EventBus
-from hub.event_log import EventLog
-from hub.read_model import ReadModel
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.supervision.event_log import EventLog
 from tests.procs import HubClient, Link, Proc, free_port, spooled, stream_view, wait_until
 
 SITE = """\
@@ -333,7 +333,7 @@ def test_events_log_rotates_at_its_size_and_keeps_five_old_files(tmp_path: Path)
 
 
 def test_the_hub_rotates_events_log_at_10_mb_and_keeps_5(tmp_path: Path):
-    from hub.runtime import HubRuntime
+    from fleetdaq.hub.runtime import HubRuntime
 
     site = parse_config(SITE.format(port=free_port(), link=free_port(), spool="max_age_s: 60"), "s")
     runtime = HubRuntime(site, tmp_path)  # composed, not started: nothing opened

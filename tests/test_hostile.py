@@ -39,9 +39,9 @@ def _wait_for_no_holes(port: int, timeout: float = 60.0) -> None:
     """Until the hub says wec/t8 has no hole waiting for a replay and has acked recently."""
     import zenoh
 
-    from edge.keys import SiteKeys
-    from edge.zenoh_session import client_config
-    from hub.status import query_status
+    from fleetdaq.contract.keys import SiteKeys
+    from fleetdaq.hub.live.status import query_status
+    from fleetdaq.runtime.zenoh_session import client_config
 
     session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
     try:

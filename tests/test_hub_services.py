@@ -14,18 +14,18 @@ import numpy as np
 import pytest
 import zenoh
 
-from edge.cdr import encode
-from edge.config.load import parse_config
-from edge.keys import SiteKeys
-from edge.messages import Event, make_event
-from edge.wire import BatchEncoder, decode_u64, encode_u64
-from edge.zenoh_session import client_config
-from hub.bus import worth_telling
-from hub.data_lock import LOCK_FILE, DataFolderLock
-from hub.errors import RouterError
-from hub.runtime import HubRuntime
-from hub.services import ServiceStack
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import Event, make_event
+from fleetdaq.contract.wire import BatchEncoder, decode_u64, encode_u64
+from fleetdaq.hub.bus import worth_telling
+from fleetdaq.hub.errors import RouterError
+from fleetdaq.hub.recording.data_lock import LOCK_FILE, DataFolderLock
+from fleetdaq.hub.runtime import HubRuntime
+from fleetdaq.hub.services import ServiceStack
+from fleetdaq.ptp.quality import UNSYNCED
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import free_port
 
 SITE = """\
@@ -222,9 +222,9 @@ def test_a_dead_recorder_thread_is_reported_loudly_not_hidden(hub: tuple[HubRunt
 
 
 def test_a_periodic_workers_tick_that_raises_is_its_services_failure():
-    """`hub.periodic.Periodic` (the heartbeat, the hub's health, the certificate watch): ticks
-    every period; one that raises ends the thread, and `failure()` says so."""
-    from hub.periodic import Periodic
+    """`fleetdaq.hub.periodic.Periodic` (the heartbeat, the hub's health, the certificate watch):
+    ticks every period; one that raises ends the thread, and `failure()` says so."""
+    from fleetdaq.hub.periodic import Periodic
 
     class Ticker(Periodic):
         def __init__(self) -> None:

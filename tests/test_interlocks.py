@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edge.agent import EdgeAgent
-from edge.config.load import parse_config
-from edge.config.node_control import EdgeInterlockConfig
-from edge.interlocks import Change, Interlock, Interlocks
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.config.node_control import EdgeInterlockConfig
+from fleetdaq.edge.agent import EdgeAgent
+from fleetdaq.edge.interlocks import Change, Interlock, Interlocks
 from tests.procs import free_port, wait_until
 
 NAN = math.nan

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from edge.keys import Key, Kind, SiteKeys
+from fleetdaq.contract.keys import Key, Kind, SiteKeys
 
 K = SiteKeys("demo")
 

@@ -8,12 +8,12 @@ import time
 import numpy as np
 import pytest
 
-from edge.config.load import parse_config
-from edge.wire import BatchEncoder, read_header
-from hub import plot_kernels
-from hub.batch_feed import BatchFeed, FedBatch
-from hub.live_plots import LivePlots
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.wire import BatchEncoder, read_header
+from fleetdaq.hub.live import plot_kernels
+from fleetdaq.hub.live.plots import LivePlots
+from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.ptp.quality import UNSYNCED
 
 SITE = """\
 site: plots
@@ -196,7 +196,7 @@ def test_a_followed_plot_shows_a_late_batch_and_a_jump_past_its_span(plots: Live
 
 
 def test_deltas_bring_every_client_to_the_whole_plot_however_often_it_is_sent_one(fold: str):
-    from hub.web import frames
+    from fleetdaq.hub.live.web import frames
 
     site = parse_config(SITE, "<test>")
     plots = LivePlots(site, BatchFeed(), window_s=10.0)

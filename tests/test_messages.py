@@ -11,9 +11,9 @@ from typing import Any
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from edge.cdr import decode, encode
-from edge.errors import WireError
-from edge.messages import (
+from fleetdaq.contract.cdr import decode, encode
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.messages import (
     EVENT_TYPE,
     HUB_HEARTBEAT_TYPE,
     NODE_HEALTH_TYPE,
@@ -28,7 +28,7 @@ from edge.messages import (
     TimeSyncStatus,
     make_event,
 )
-from ptp.status import Check, Level, SyncState, TimeStatus
+from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus
 
 
 def _store(name: str):  # type: ignore[no-untyped-def]

@@ -21,14 +21,14 @@ from prometheus_client.core import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from edge import __version__
-from edge.config.load import parse_config
-from edge.keys import SiteKeys
-from edge.wire import BatchEncoder, encode_u64
-from edge.zenoh_session import client_config
-from hub.metrics import ViewCollector, exposition, reference_metrics, render_metrics
-from hub.runtime import HubRuntime
-from ptp.quality import UNSYNCED
+from fleetdaq import __version__
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.wire import BatchEncoder, encode_u64
+from fleetdaq.hub.live.metrics import ViewCollector, exposition, reference_metrics, render_metrics
+from fleetdaq.hub.runtime import HubRuntime
+from fleetdaq.ptp.quality import UNSYNCED
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import free_port, wait_until
 
 SITE = """\
@@ -150,7 +150,7 @@ def test_the_exposition_writes_what_prometheus_client_writes_even_for_awkward_va
 def test_certificate_expiry_is_a_timestamp_per_certificate():
     """`fleetdaq_certificate_expiry_timestamp_seconds{certificate}` from the read model's
     ``certificates`` (security.tls), as prometheus-client would write it; none without TLS."""
-    from hub.read_model import HubView
+    from fleetdaq.hub.read_model import HubView
 
     ends = {"hub": 1_900_000_000, "ca": 2_100_000_000}
     view = HubView(
@@ -175,9 +175,9 @@ def test_certificate_expiry_is_a_timestamp_per_certificate():
 def test_each_node_says_when_its_certificate_expires():
     """`fleetdaq_node_certificate_expiry_timestamp_seconds{node}` from each node's health (the
     hub's and a partition hub's too), none for a node that cannot tell (0: no TLS)."""
-    from edge.host_metrics import HostMetricsReader
-    from edge.messages import NodeHealth, TimeSyncStatus
-    from hub.read_model import HubView, NodeView
+    from fleetdaq.contract.messages import NodeHealth, TimeSyncStatus
+    from fleetdaq.hub.read_model import HubView, NodeView
+    from fleetdaq.runtime.host_metrics import HostMetricsReader
 
     host = HostMetricsReader({}).read()
 
@@ -207,9 +207,9 @@ def test_each_node_says_when_its_certificate_expires():
 def test_each_stream_says_how_many_of_its_polls_came_late():
     """`fleetdaq_stream_late_polls{node,stream}` from the node's typed health: polls of a polled
     device read a period or more late (a busy or stopped edge), apart from invalid samples."""
-    from edge.host_metrics import HostMetricsReader
-    from edge.messages import NodeHealth, StreamHealth, TimeSyncStatus
-    from hub.read_model import HubView, NodeView
+    from fleetdaq.contract.messages import NodeHealth, StreamHealth, TimeSyncStatus
+    from fleetdaq.hub.read_model import HubView, NodeView
+    from fleetdaq.runtime.host_metrics import HostMetricsReader
 
     tc = StreamHealth("tc", 9, 36, 0, 0, 9, 0, 2.5e8, 0, 8, 0, 0, 0.0, 0, late_polls=7)
     t8 = StreamHealth("t8", 9, 900, 0, 0, 9, 0, 1e6, 0, 8, 0, 0, 0.0, 0)

@@ -1,4 +1,5 @@
-"""The main hub's side of recorder requests on a partitioned site (`hub.partition_recorders`):
+"""The main hub's side of recorder requests on a partitioned site
+(`fleetdaq.hub.partitions.recorders`):
 a partition's answer crosses the mesh, so it is checked in full before the operator is told
 what that hub did. The real round trip (two hubs, `fleetdaq rec`) is in test_partitions.py."""
 
@@ -12,10 +13,10 @@ from typing import Any
 
 import pytest
 
-from edge.keys import SiteKeys
-from edge.messages import Event
-from hub.bus import EventBus
-from hub.partition_recorders import PartitionRecorders, parse_answer
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import Event
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.partitions.recorders import PartitionRecorders, parse_answer
 from tests.zenoh_shapes import Payload, Reply, Sample
 
 
@@ -178,8 +179,8 @@ def test_a_snapshot_is_not_asked_of_a_partition_that_keeps_no_buffer_and_that_is
 def test_the_main_hub_asks_no_snapshot_of_the_partitions_its_site_file_switches_off(
     tmp_path: Path,
 ) -> None:
-    from edge.config.load import parse_config
-    from hub.runtime import HubRuntime
+    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.hub.runtime import HubRuntime
 
     site = parse_config(
         """

@@ -1,7 +1,8 @@
-"""The main hub's view of a partition hub's report (`hub.partition_watch.PartitionWatch`): the
+"""The main hub's view of a partition hub's report
+(`fleetdaq.hub.partitions.watch.PartitionWatch`): the
 report crosses the LAN (with no ACL, anyone there can put on its key), and what it says goes into
 `/metrics`, the dashboard and `fleetdaq status`, so it is checked field by field
-(`hub.read_model.from_jsonable`) and refused whole when anything is wrong."""
+(`fleetdaq.hub.read_model.from_jsonable`) and refused whole when anything is wrong."""
 
 from __future__ import annotations
 
@@ -14,12 +15,12 @@ from typing import Any
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from edge.config.load import parse_config
-from edge.messages import Event
-from hub.bus import EventBus
-from hub.metrics import render_metrics
-from hub.partition_watch import PartitionWatch
-from hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.messages import Event
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.live.metrics import render_metrics
+from fleetdaq.hub.partitions.watch import PartitionWatch
+from fleetdaq.hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable
 from tests.zenoh_shapes import Payload, Sample
 
 SITE = """\
@@ -153,7 +154,7 @@ def _samples(text: bytes) -> dict[tuple[str, tuple[tuple[str, str], ...]], float
 def test_metrics_say_whether_each_partition_hub_is_there_and_what_its_recorder_wrote() -> None:
     import zenoh
 
-    from hub.metrics import ViewCollector, exposition, reference_metrics
+    from fleetdaq.hub.live.metrics import ViewCollector, exposition, reference_metrics
 
     bay2 = (("partition", "bay2"),)
     bus = EventBus()
@@ -189,9 +190,9 @@ HEALTH_KEY = "fleetdaq/parts/hub/partition/bay2/health"
 
 
 def _hub_health(node: str, tmp: Any) -> bytes:
-    from edge.cdr import encode
-    from edge.host_metrics import HostMetricsReader
-    from edge.messages import NodeHealth, TimeSyncStatus
+    from fleetdaq.contract.cdr import encode
+    from fleetdaq.contract.messages import NodeHealth, TimeSyncStatus
+    from fleetdaq.runtime.host_metrics import HostMetricsReader
 
     return encode(
         NodeHealth(
@@ -211,7 +212,7 @@ def test_a_partition_hubs_own_health_is_a_machine_of_the_fleet(tmp_path: Any) ->
     Foxglove diagnostics as node ``hub/bay2``; a health that is not bay2's is refused whole."""
     import zenoh
 
-    from hub.foxglove.diagnostics import diagnostic_array
+    from fleetdaq.hub.live.foxglove.diagnostics import diagnostic_array
 
     seen: list[Event] = []
     bus = EventBus()

@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from edge.cdr import encode
-from edge.config.load import load_config
-from edge.keys import SiteKeys
-from edge.messages import OutputCommand, make_event
-from edge.wire import BatchEncoder, encode_u64
-from hub.partition import partition_key
-from hub.status import query_status
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.config.load import load_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import OutputCommand, make_event
+from fleetdaq.contract.wire import BatchEncoder, encode_u64
+from fleetdaq.hub.live.status import query_status
+from fleetdaq.hub.partitions.runtime import partition_key
+from fleetdaq.ptp.quality import UNSYNCED
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_until
 
 REPO = Path(__file__).resolve().parent.parent
@@ -399,7 +399,7 @@ def test_the_main_hub_shows_a_partition_stream_live_only_while_somebody_looks_at
     import aiohttp
     import numpy as np
 
-    from hub.web import frames
+    from fleetdaq.hub.live.web import frames
     from tests.foxglove_client import FoxgloveClient
 
     dash = (
@@ -738,9 +738,9 @@ def test_a_partitioned_site_with_security_on_meshes_over_mutual_tls(tmp_path: Pa
 
     import zenoh
 
-    from edge.security import TlsFiles, read_certificate
-    from edge.zenoh_session import client_config
     from fleetdaq.pki import init, issue_node, issue_operator, issue_partition
+    from fleetdaq.runtime.security import TlsFiles, read_certificate
+    from fleetdaq.runtime.zenoh_session import client_config
 
     pki = tmp_path / "pki"
     init(pki, "sparts", ["127.0.0.1"])

@@ -13,7 +13,7 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from edge.security import SecretFileError, check_private_file
+from fleetdaq.runtime.security import SecretFileError, check_private_file
 from tests.procs import REPO
 
 

@@ -173,7 +173,7 @@ def test_bad_requests_are_refused_with_a_reason(site: dict[str, Any]):
     assert "explode" in r.stderr
     # Straight to the hub: unknown fields and actions are refused, nothing is done.
     session = site["hub"].session
-    from edge.keys import SiteKeys
+    from fleetdaq.contract.keys import SiteKeys
 
     key = SiteKeys("rectest").hub("recorder")
     for body, why in (

@@ -7,7 +7,7 @@ publishing under another node's prefix is counted under its address and certific
 raised, naming what and where; a certificate of the site's CA that the ACL does not list is
 refused everything, counted once per connection; a flood of refused messages is counted
 exactly and raised once; the hub keeps serving throughout. This is also the test that zenoh's
-log still says what `hub.router_log` reads.
+log still says what `fleetdaq.hub.routing.router_log` reads.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ import pytest
 import zenoh
 from rosbags.highlevel import AnyReader
 
-from edge.keys import SiteKeys
-from edge.security import TlsFiles
+from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.pki import init, issue_node, issue_operator
+from fleetdaq.runtime.security import TlsFiles
 from tests.procs import Proc, free_port, wait_for_port, wait_until
 from tests.test_security import SITE, Site
 

@@ -10,10 +10,10 @@ from typing import Any
 
 import zenoh
 
-from edge.config.load import parse_config
-from edge.event_publisher import EventPublisher
-from edge.spool import StreamSpool
-from edge.stream_loop import StreamLoop
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.edge.stream_loop import StreamLoop
 
 SITE = """\
 site: replay

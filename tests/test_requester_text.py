@@ -1,4 +1,4 @@
-"""The one rule for text a requester chose (edge.requester_text)."""
+"""The one rule for text a requester chose (fleetdaq.contract.requester_text)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from edge.requester_text import TextRefused, checked_text, text_problem
-from hub.requests import BadRequest, text
+from fleetdaq.contract.requester_text import TextRefused, checked_text, text_problem
+from fleetdaq.hub.requests import BadRequest, text
 
 
 @pytest.mark.parametrize(

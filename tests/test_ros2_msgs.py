@@ -15,9 +15,9 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.typesys import get_types_from_msg
 
-from edge import __version__
-from edge.cdr import SEPARATOR, encode
-from edge.messages import (
+from fleetdaq import __version__
+from fleetdaq.contract.cdr import SEPARATOR, encode
+from fleetdaq.contract.messages import (
     COMMAND_RECORD_TYPE,
     HUB_HEARTBEAT_TYPE,
     CommandRecord,
@@ -25,7 +25,7 @@ from edge.messages import (
     OutputCommand,
     OutputReply,
 )
-from hub.session import SCHEMAS, RecordingSession
+from fleetdaq.hub.recording.session import SCHEMAS, RecordingSession
 from tests.analysis.recordings import (
     alarm_message,
     event_message,
@@ -36,7 +36,7 @@ from tests.analysis.recordings import (
 )
 from tests.procs import REPO
 
-PACKAGE = Path(str(files("edge").joinpath("fleetdaq_msgs")))
+PACKAGE = Path(str(files("fleetdaq.contract").joinpath("fleetdaq_msgs")))
 MSG_FILES = {p.stem: p for p in (PACKAGE / "msg").glob("*.msg")}
 STANDARD = {"diagnostic_msgs/KeyValue"}
 """Standard ROS types our messages use (declared as dependencies, not shipped)."""

@@ -1,5 +1,5 @@
-"""The router's log read into refusals (`hub.router_log`), and the refusals counted and raised
-(`hub.refused_traffic`), with a real event bus and read model.
+"""The router's log read into refusals (`fleetdaq.hub.routing.router_log`), and the refusals counted
+and raised (`fleetdaq.hub.routing.refused_traffic`), with a real event bus and read model.
 
 ``tests/data/router_log/zenoh-1.10.2.log`` is the log of a real router (the hub's own config:
 mutual TLS and the site's ACL) while, in turn: a node's pair from another CA tried to connect
@@ -16,14 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.messages import Event
-from fleetdaq.pki import init
-from hub.bus import EventBus
-from hub.read_model import ReadModel
-from hub.refused_traffic import OTHER_PEERS, RefusedTraffic
-from hub.router import Router
-from hub.router_log import (
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.messages import Event
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.routing.refused_traffic import OTHER_PEERS, RefusedTraffic
+from fleetdaq.hub.routing.router import Router
+from fleetdaq.hub.routing.router_log import (
     AclDenial,
     PeerAccepted,
     RouterLine,
@@ -32,6 +31,7 @@ from hub.router_log import (
     TlsRefusal,
     UnknownSubject,
 )
+from fleetdaq.pki import init
 from tests.procs import free_port, wait_until
 from tests.test_security import SITE
 

@@ -10,14 +10,14 @@ from typing import Any
 
 import numpy as np
 
-from edge.config.load import parse_config
-from edge.messages import OutputCommand, OutputReply
-from edge.wire import BatchEncoder, read_header
-from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
-from hub.read_model import AlarmView, HubView, NodeView, ReadModel
-from hub.rules import RuleEngine
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.messages import OutputCommand, OutputReply
+from fleetdaq.contract.wire import BatchEncoder, read_header
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.control.rules import RuleEngine
+from fleetdaq.hub.read_model import AlarmView, HubView, NodeView, ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.ptp.quality import UNSYNCED
 
 S = 1_000_000_000
 SITE = """\

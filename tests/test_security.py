@@ -29,15 +29,15 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from edge.cdr import decode, encode
-from edge.keys import SiteKeys
-from edge.messages import CommandRecord, OutputCommand, make_event
-from edge.security import TlsFiles, read_certificate
-from edge.wire import BatchEncoder, encode_u64
-from edge.zenoh_session import client_config
+from fleetdaq.contract.cdr import decode, encode
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.messages import CommandRecord, OutputCommand, make_event
+from fleetdaq.contract.wire import BatchEncoder, encode_u64
 from fleetdaq.pki import init, issue_hub, issue_node, issue_operator
+from fleetdaq.ptp.quality import UNSYNCED
 from fleetdaq.read import read_stream
-from ptp.quality import UNSYNCED
+from fleetdaq.runtime.security import TlsFiles, read_certificate
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import REPO, Proc, free_port, sessions, stream_view, wait_for_port, wait_until
 
 FORGED = 12345.0
@@ -487,9 +487,9 @@ def test_no_secret_in_the_recording_events_or_logs(tmp_path: Path, monkeypatch: 
     """The SMTP password (from the environment), the private keys and the dashboard's password
     hashes: in no file the hub writes (the MCAP with its attached config, events.log, the
     journal, the outbox) nor in its log."""
-    from edge.config.load import parse_config
-    from hub.runtime import HubRuntime
-    from hub.web.users import hash_password, write_users
+    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.hub.live.web.users import hash_password, write_users
+    from fleetdaq.hub.runtime import HubRuntime
 
     secret = "s3cret-Smtp-Passw0rd"
     monkeypatch.setenv("FLEETDAQ_TEST_SMTP_PASSWORD", secret)

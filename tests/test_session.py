@@ -10,11 +10,11 @@ import yaml
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from edge.config.hub import RecorderConfig
-from edge.wire import BatchEncoder, decode_batch
-from hub.session import ACTIVE_SUFFIX, RecordingSession, StreamSelector
-from hub.stream_stats import StreamStats
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.wire import BatchEncoder, decode_batch
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX, RecordingSession, StreamSelector
+from fleetdaq.hub.recording.stream_stats import StreamStats
+from fleetdaq.ptp.quality import UNSYNCED
 
 T0 = 1_795_000_000_000_000_000
 SEC = 1_000_000_000

@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 import zenoh
 
-from edge.config.load import parse_config
-from edge.keys import SiteKeys
-from edge.wire import BatchEncoder, encode_u64
-from edge.zenoh_session import client_config
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.wire import BatchEncoder, encode_u64
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed
+from fleetdaq.hub.recording.snapshots import OVERHEAD_BYTES, SnapshotBuffer
+from fleetdaq.hub.runtime import HubRuntime
+from fleetdaq.ptp.quality import UNSYNCED
 from fleetdaq.read import read_events, read_stream
-from hub.batch_feed import BatchFeed
-from hub.bus import EventBus
-from hub.read_model import ReadModel
-from hub.runtime import HubRuntime
-from hub.snapshots import OVERHEAD_BYTES, SnapshotBuffer
-from ptp.quality import UNSYNCED
+from fleetdaq.runtime.zenoh_session import client_config
 from tests.procs import free_port, wait_until
 
 SITE = """\
@@ -147,7 +147,7 @@ def test_an_alarm_writes_the_seconds_before_it_and_a_second_alarm_shares_it(
 def test_the_buffer_tells_of_every_request_and_alarm_and_takes_remote_ones_as_its_own(
     tmp_path: Path,
 ):
-    from edge.messages import make_event
+    from fleetdaq.contract.messages import make_event
 
     site = parse_config(SITE.format(port=1, seconds=60, max_bytes=1 << 30), "<test>")
     recording = [True]
@@ -193,7 +193,7 @@ def test_the_buffer_tells_of_every_request_and_alarm_and_takes_remote_ones_as_it
     ],
 )
 def test_a_trigger_that_is_not_one_is_refused_saying_why(raw: bytes, why: str):
-    from hub.partition_snapshots import parse_trigger
+    from fleetdaq.hub.partitions.snapshots import parse_trigger
 
     with pytest.raises(ValueError, match=re.escape(why)):
         parse_trigger(raw)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from edge.spool import HEADER_SIZE, StreamSpool
+from fleetdaq.edge.spool import HEADER_SIZE, StreamSpool
 
 T0 = 1_795_000_000_000_000_000
 SEC = 1_000_000_000

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import fleetdaq.read as fr
-from edge.drivers.labjack_ljm import CORE_TIMER_HZ
+from fleetdaq.edge.drivers.labjack_ljm import CORE_TIMER_HZ
 from tests.procs import HubClient, Proc, free_port, sessions, stream_view, wait_for_port
 
 RATE_HZ = 1000

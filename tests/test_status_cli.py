@@ -149,8 +149,8 @@ def stray(tmp_path: Path) -> Iterator[tuple[Path, dict[str, bytes]]]:
     a hub of another fleetdaq version."""
     import zenoh
 
-    from edge.keys import SiteKeys
-    from edge.zenoh_session import router_config
+    from fleetdaq.contract.keys import SiteKeys
+    from fleetdaq.runtime.zenoh_session import router_config
 
     port = free_port()
     cfg = tmp_path / "site.yaml"

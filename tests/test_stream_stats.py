@@ -6,7 +6,7 @@ import itertools
 
 import pytest
 
-from hub.stream_stats import StreamStats
+from fleetdaq.hub.recording.stream_stats import StreamStats
 
 PERIOD_NS = 1_000_000  # 1 kS/s
 SCANS = 100  # 0.1 s a batch

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from hub.session import ACTIVE_SUFFIX
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX
 from tests.procs import Proc, free_port, sessions, wait_for_port
 
 RUN_S = 10.0

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.systemd import Beat, Systemd
-from hub.runtime import HubRuntime
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.hub.runtime import HubRuntime
+from fleetdaq.runtime.systemd import Beat, Systemd
 from tests.procs import REPO, free_port, wait_until
 
 SITE = """\

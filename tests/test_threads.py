@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.threads import NamedThread, name_os_thread, os_name
+from fleetdaq.runtime.threads import NamedThread, name_os_thread, os_name
 from tests.procs import Proc, free_port, wait_until
 from tests.web.test_hub_dashboard import SITE as HUB_SITE  # a hub with its dashboard on
 

@@ -10,11 +10,11 @@ import numpy as np
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from edge.config.hub import RecorderConfig
-from edge.wire import BatchEncoder
-from hub.session import ACTIVE_SUFFIX, RecordingSession
-from hub.verify import check_file, recover_file, scan_active, verify_path
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.wire import BatchEncoder
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX, RecordingSession
+from fleetdaq.hub.recording.verify import check_file, recover_file, scan_active, verify_path
+from fleetdaq.ptp.quality import UNSYNCED
 from tests.procs import REPO
 
 T0 = 1_795_000_000_000_000_000

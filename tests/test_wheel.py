@@ -27,16 +27,22 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
     (wheel,) = dist.glob("fleetdaq-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     for shipped in (
-        "edge/config/demo.yaml",
-        "edge/fleetdaq_msgs/msg/SampleBatch.msg",
-        "edge/fleetdaq_msgs/package.xml",
-        "ptp/templates/ptp4l-slave-software.conf",
+        "fleetdaq/contract/config/demo.yaml",
+        "fleetdaq/contract/fleetdaq_msgs/msg/SampleBatch.msg",
+        "fleetdaq/contract/fleetdaq_msgs/package.xml",
+        "fleetdaq/ptp/templates/ptp4l-slave-software.conf",
         "fleetdaq/cli/__init__.py",
-        "hub/web/static/index.html",
-        "hub/web/static/app.js",
-        "hub/web/static/style.css",
+        "fleetdaq/edge/agent.py",
+        "fleetdaq/hub/runtime.py",
+        "fleetdaq/hub/live/web/static/index.html",
+        "fleetdaq/hub/live/web/static/app.js",
+        "fleetdaq/hub/live/web/static/style.css",
     ):
         assert shipped in names, shipped
+    # One import name: nothing installs a top-level `edge`, `hub` or `ptp` that another project
+    # on PyPI could also install.
+    top = {n.split("/")[0] for n in names if not n.startswith("fleetdaq-")}
+    assert top == {"fleetdaq"}, sorted(top)
 
     venv = tmp_path / "venv"
     _run([sys.executable, "-m", "venv", str(venv)])
@@ -46,7 +52,9 @@ def test_the_wheel_installs_and_runs_the_demo_from_an_empty_directory(tmp_path: 
     empty.mkdir()
     state = tmp_path / "state"
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV"))}
-    env["STATE_DIRECTORY"] = str(state)  # where the demo records by default (edge.paths)
+    env["STATE_DIRECTORY"] = str(
+        state
+    )  # where the demo records by default (fleetdaq.runtime.paths)
     r = subprocess.run(
         [
             str(venv / "bin" / "fleetdaq"),

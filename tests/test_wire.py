@@ -15,9 +15,9 @@ from mcap.writer import Writer
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from edge.cdr import MAX_ITEMS, MAX_STRING_BYTES
-from edge.errors import WireError
-from edge.wire import (
+from fleetdaq.contract.cdr import MAX_ITEMS, MAX_STRING_BYTES
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.wire import (
     SAMPLE_BATCH_SCHEMA,
     SAMPLE_BATCH_TYPE,
     BatchEncoder,
@@ -25,7 +25,7 @@ from edge.wire import (
     decode_batch,
     read_header,
 )
-from ptp.quality import ClockQuality, ClockState
+from fleetdaq.ptp.quality import ClockQuality, ClockState
 
 NAMES = ("heave", "surge", "pitch")
 UNITS = ("m", "m", "deg")
@@ -317,7 +317,7 @@ def test_mangled_payloads_are_refused_exactly_when_an_independent_decoder_says_s
 
 
 def test_acks_and_floors_carry_the_spool_epoch_and_old_peers_still_read():
-    from edge.wire import decode_mark, encode_mark, encode_u64
+    from fleetdaq.contract.wire import decode_mark, encode_mark, encode_u64
 
     assert decode_mark(encode_mark(41, 2**63 + 5)) == (41, 2**63 + 5)
     assert decode_mark(encode_u64(41)) == (41, None), "an edge or hub from before epochs"

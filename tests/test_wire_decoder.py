@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edge.errors import WireError
-from edge.wire import BatchDecoder, BatchEncoder, decode_batch
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.wire import BatchDecoder, BatchEncoder, decode_batch
+from fleetdaq.ptp.quality import UNSYNCED
 
 T0 = 1_795_000_000_000_000_000
 

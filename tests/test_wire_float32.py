@@ -14,8 +14,8 @@ from mcap.writer import Writer
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from edge.errors import WireError
-from edge.wire import (
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.wire import (
     BATCH_TYPES,
     SAMPLE_BATCH32_SCHEMA,
     SAMPLE_BATCH32_TYPE,
@@ -27,7 +27,7 @@ from edge.wire import (
     read_header,
     sample_format_of,
 )
-from ptp.quality import ClockQuality, ClockState
+from fleetdaq.ptp.quality import ClockQuality, ClockState
 
 NAMES = ("heave", "surge", "pitch")
 UNITS = ("m", "m", "deg")

@@ -11,8 +11,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from edge.drivers.pacing import PacedSim
-from edge.schema import Float, StreamBase
+from fleetdaq.contract.schema import Float, StreamBase
+from fleetdaq.edge.drivers.pacing import PacedSim
 
 
 class EnvironmentSimStream(StreamBase):

@@ -1,4 +1,4 @@
-"""HD44780 character LCD behind a PCF8574 I2C backpack (smbus2): the LCD of `edge.display`.
+"""HD44780 character LCD behind a PCF8574 I2C backpack (smbus2): the LCD of `fleetdaq.edge.display`.
 
 The PCF8574's eight port bits drive the LCD in 4-bit mode (the common backpack wiring):
 P0 = RS, P1 = R/W (kept low: write only), P2 = E, P3 = backlight, P4-P7 = D4-D7. Every byte
@@ -16,9 +16,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
 
-from edge.display_text import parse_line
-from edge.drivers.i2cbus import I2cFault
-from edge.schema import Float, Int, Strict
+from fleetdaq.contract.schema import Float, Int, Strict
+from fleetdaq.edge.display_text import parse_line
+from fleetdaq.edge.drivers.i2cbus import I2cFault
 
 RS, E, BACKLIGHT = 0x01, 0x04, 0x08
 ROW_OFFSETS = (0x00, 0x40, 0x14, 0x54)

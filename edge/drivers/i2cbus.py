@@ -11,8 +11,8 @@ import errno
 import importlib
 from typing import Any, Literal
 
-from edge.errors import DeviceError, DeviceNotFound, DriverUnavailable
-from edge.schema import SimFault
+from fleetdaq.contract.errors import DeviceError, DeviceNotFound, DriverUnavailable
+from fleetdaq.contract.schema import SimFault
 
 NACK_ERRNOS = {errno.EREMOTEIO, errno.EIO, errno.ENXIO}
 

@@ -20,15 +20,15 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BeforeValidator, Field
 
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.errors import (
+from fleetdaq.contract.errors import (
     DeviceDisconnected,
     DeviceError,
     DeviceNotFound,
     DriverError,
     DriverUnavailable,
 )
-from edge.schema import Float, Int, SimFault, Strict, as_identifier
+from fleetdaq.contract.schema import Float, Int, SimFault, Strict, as_identifier
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 
 T8_ADC_BITS = 24
 """One 24-bit sigma-delta ADC per analog input: its codes span the channel's ±range."""
@@ -170,9 +170,8 @@ class CoreTimer:
 
     Between two timer values the expected number of ticks is known (from scan indices within a
     stream, from host time across a restart), so the number of 2^32 wraps between them is the
-    integer that reconciles expected and raw differences: exact while the expectation is good
-    to better than ±2^31 ticks (21 s).
-    """
+    integer that reconciles expected and raw differences: exact while the expectation is good to
+    better than ±2^31 ticks (21 s)."""
 
     def __init__(self) -> None:
         self.last_ticks: int | None = None
@@ -233,7 +232,8 @@ class T8Outputs:
 
     What the output drivers drive; every write is followed by a read of the same register so a
     command can report what the device actually holds (a DAC clamps to its -0.1..10 V span).
-    One per device in an agent (`edge.drivers.shared`), one LJM call at a time through `lock`.
+    One per device in an agent (`fleetdaq.edge.drivers.shared`), one LJM call at a time through
+    `lock`.
 
     LJM hands out the handle of a device that is already open in the process (LJM User's Guide
     2.1, "Subsequent calls may return the same handle"), so on a T8 that also streams this goes

@@ -33,8 +33,11 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import AfterValidator, Field, model_validator
 
-from edge.drivers.base import Block, DriverEvent
-from edge.drivers.labjack_ljm import (
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.base import Block, DriverEvent
+from fleetdaq.edge.drivers.labjack_ljm import (
     CORE_TIMER_HZ,
     T8_ADC_BITS,
     T8_MAX_SAMPLE_RATE,
@@ -45,10 +48,7 @@ from edge.drivers.labjack_ljm import (
     load_ljm,
     t8_range,
 )
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.errors import DriverError
-from edge.schema import Channel, Float, Int, Resolution, StreamBase
-from edge.wire import SampleStatus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 
 log = logging.getLogger("fleetdaq.drivers.labjack_t8")
 

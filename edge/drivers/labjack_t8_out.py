@@ -2,8 +2,8 @@
 line), and the T8's hardware watchdog set to the outputs' safe values.
 
 Both read back from the device (eReadName of the same register after every write and at every
-readback poll). All outputs of one T8 go through one `T8Outputs` (edge.drivers.shared); on a
-T8 that also streams, LJM hands out the stream's handle (see `T8Outputs`).
+readback poll). All outputs of one T8 go through one `T8Outputs` (fleetdaq.edge.drivers.shared); on
+a T8 that also streams, LJM hands out the stream's handle (see `T8Outputs`).
 
 Hardware watchdog (T-Series datasheet 23.0, "Watchdog"): when the T8 hears no command-response
 communication for WATCHDOG_TIMEOUT_S_DEFAULT seconds it performs the enabled actions: drive DIO
@@ -22,10 +22,10 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field
 
-from edge.drivers.labjack_ljm import LabJackT8Sim, T8Connection, T8Outputs, dio_number
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.schema import OutputBase
+from fleetdaq.contract.schema import OutputBase
+from fleetdaq.edge.drivers.labjack_ljm import LabJackT8Sim, T8Connection, T8Outputs, dio_number
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
 
 T8_DIO_LINE = r"^(FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9]))$"
 ALL_DIO = (1 << 23) - 1

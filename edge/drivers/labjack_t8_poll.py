@@ -9,8 +9,10 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import AfterValidator, Field
 
-from edge.drivers.base import Block, DriverEvent
-from edge.drivers.labjack_ljm import (
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase
+from fleetdaq.edge.drivers.base import Block, DriverEvent
+from fleetdaq.edge.drivers.labjack_ljm import (
     CORE_TIMER_HZ,
     T8_ADC_BITS,
     CoreTimer,
@@ -21,9 +23,7 @@ from edge.drivers.labjack_ljm import (
     load_ljm,
     t8_range,
 )
-from edge.drivers.pacing import SYSTEM_TIME, LatePolls, PollPacer, TimeSource
-from edge.errors import DriverError
-from edge.schema import Channel, Float, Int, Resolution, StreamBase
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, LatePolls, PollPacer, TimeSource
 
 T8_POLL_REGISTER = r"^(AIN[0-7]|FIO[0-7]|EIO[0-7]|CIO[0-3]|DIO([0-9]|1[0-9])|DAC[01])$"
 
@@ -121,7 +121,7 @@ class LabJackT8Poll:
 
     def read(self) -> Block:
         """The next block of polls; it ends early when the host was too late for the next
-        slots, as a polled driver's does (`edge.drivers.polled.PolledDriver.read`)."""
+        slots, as a polled driver's does (`fleetdaq.edge.drivers.polled.PolledDriver.read`)."""
         rows = np.full((self.scans, len(self.cfg.channels)), np.nan)
         timer: list[int] = []
         poll_host: list[int] = []

@@ -26,11 +26,20 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.polled import Poll, PolledDriver
-from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
-from edge.schema import Channel, Float, Int, Name, Resolution, SimFault, StreamBase, Strict
-from edge.wire import SampleStatus
+from fleetdaq.contract.schema import (
+    Channel,
+    Float,
+    Int,
+    Name,
+    Resolution,
+    SimFault,
+    StreamBase,
+    Strict,
+)
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.polled import Poll, PolledDriver
+from fleetdaq.edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
 
 log = logging.getLogger("fleetdaq.drivers.max31855")
 

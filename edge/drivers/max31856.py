@@ -24,13 +24,13 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from edge.drivers.max31855 import WeldThermalModel
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.polled import Poll, PolledDriver
-from edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
-from edge.errors import DeviceNotFound
-from edge.schema import Channel, Float, Resolution, SimFault, StreamBase
-from edge.wire import SampleStatus
+from fleetdaq.contract.errors import DeviceNotFound
+from fleetdaq.contract.schema import Channel, Float, Resolution, SimFault, StreamBase
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.max31855 import WeldThermalModel
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.polled import Poll, PolledDriver
+from fleetdaq.edge.drivers.spibus import SpiDev, SpiDevice, SpiFactory, load_spidev, open_spi
 
 
 class Tc56Fault(SimFault):

@@ -27,11 +27,11 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
-from edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.errors import DeviceError
-from edge.schema import Float, Int, OutputBase, Strict
+from fleetdaq.contract.errors import DeviceError
+from fleetdaq.contract.schema import Float, Int, OutputBase, Strict
+from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
 
 FULL_SCALE = 4096
 MAX_CODE = 4095

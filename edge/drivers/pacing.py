@@ -11,7 +11,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from edge.drivers.base import Block, DriverEvent
+from fleetdaq.edge.drivers.base import Block, DriverEvent
 
 
 class DevicePacer:

@@ -12,7 +12,7 @@ Datasheet: NXP PCF8574/PCF8574A, Rev. 5 (27 May 2013).
   shorts it shows), not an echo of what was written.
 
 The eight pins of one chip are eight outputs sharing one port register: all of them go
-through one `Pcf8574Port` (edge.drivers.shared), which keeps the byte last written and
+through one `Pcf8574Port` (fleetdaq.edge.drivers.shared), which keeps the byte last written and
 changes one bit at a time. Pins no output drives stay HIGH (inputs, as at power-on). The first
 write sets every configured pin to its initial level in one byte, so no relay blips at start.
 
@@ -27,11 +27,11 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field
 
-from edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.errors import DeviceError
-from edge.schema import Int, OutputBase, Strict
+from fleetdaq.contract.errors import DeviceError
+from fleetdaq.contract.schema import Int, OutputBase, Strict
+from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
 
 POWER_ON_PORT = 0xFF
 """Every pin HIGH at power-on (datasheet 8.1)."""

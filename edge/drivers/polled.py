@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from edge.drivers.base import Block, DriverEvent
-from edge.drivers.pacing import LatePolls, PollPacer, TimeSource
+from fleetdaq.edge.drivers.base import Block, DriverEvent
+from fleetdaq.edge.drivers.pacing import LatePolls, PollPacer, TimeSource
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,12 +19,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.polled import Poll, PolledDriver
-from edge.errors import DeviceError, DeviceNotFound
-from edge.schema import Channel, Float, Int, Resolution, StreamBase, Strict
-from edge.wire import SampleStatus
+from fleetdaq.contract.errors import DeviceError, DeviceNotFound
+from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase, Strict
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.polled import Poll, PolledDriver
 
 
 class Sht3xSim(Strict):

@@ -35,17 +35,17 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from edge.drivers.labjack_ljm import T8_MAX_SAMPLE_RATE, T8_RANGES, LabJackT8Sim
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.drivers.sim_t8_watchdog import SimWatchdog
-from edge.drivers.simfaults import FaultSchedule
-from edge.drivers.wave_sim import WaveModel
+from fleetdaq.edge.drivers.labjack_ljm import T8_MAX_SAMPLE_RATE, T8_RANGES, LabJackT8Sim
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.sim_t8_watchdog import SimWatchdog
+from fleetdaq.edge.drivers.simfaults import FaultSchedule
+from fleetdaq.edge.drivers.wave_sim import WaveModel
 
 if TYPE_CHECKING:
-    from edge.drivers.labjack_t8 import LabJackT8Stream
-    from edge.drivers.labjack_t8_out import LabJackT8DacOutput, LabJackT8DioOutput
-    from edge.drivers.labjack_t8_poll import LabJackT8PollStream
+    from fleetdaq.edge.drivers.labjack_t8 import LabJackT8Stream
+    from fleetdaq.edge.drivers.labjack_t8_out import LabJackT8DacOutput, LabJackT8DioOutput
+    from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8PollStream
 
 CORE_TIMER_HZ = 100_000_000
 """The T8's CORE_TIMER rate (the T7's runs at 40 MHz)."""
@@ -564,7 +564,7 @@ def t8_transport(
     clock: TimeSource,
     shared: SharedDevices | None = None,
 ) -> SimLJM:
-    """The `ljm` the T8 drivers get when their config has `sim:` (edge.drivers.table): one
+    """The `ljm` the T8 drivers get when their config has `sim:` (fleetdaq.edge.drivers.table): one
     simulated T8 per identifier in an agent (the first driver's `sim:` settings make it)."""
     sim = cfg.sim
     assert sim is not None

@@ -28,12 +28,12 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
-from edge.drivers.mcp4725 import WRITE_DAC, WRITE_DAC_EEPROM, Mcp4725Output, Mcp4725Sim
-from edge.drivers.pacing import TimeSource
-from edge.drivers.pcf8574 import POWER_ON_PORT, Pcf8574Output, Pcf8574Sim
-from edge.drivers.shared import SharedDevices
-from edge.drivers.sht3x import (
+from fleetdaq.edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
+from fleetdaq.edge.drivers.mcp4725 import WRITE_DAC, WRITE_DAC_EEPROM, Mcp4725Output, Mcp4725Sim
+from fleetdaq.edge.drivers.pacing import TimeSource
+from fleetdaq.edge.drivers.pcf8574 import POWER_ON_PORT, Pcf8574Output, Pcf8574Sim
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.sht3x import (
     COMMANDS,
     MEASUREMENT_S,
     SOFT_RESET,
@@ -41,7 +41,7 @@ from edge.drivers.sht3x import (
     Sht3xStream,
     encode_sht3x,
 )
-from edge.drivers.simfaults import FaultSchedule
+from fleetdaq.edge.drivers.simfaults import FaultSchedule
 
 
 def nack() -> OSError:

@@ -3,11 +3,10 @@
 Both chips measure the same weld-cell thermocouple (`WeldThermal`): the substrate heats
 towards `peak_c` while a layer is deposited and cools towards ambient between layers (a
 first-order model), the board's cold junction sits near ambient. The layers come from a fixed
-cycle, or from a simulated weld robot (`edge.drivers.weld_cell`) when the sim names its cell.
-The chips convert on their own schedule (a MAX31855 about every 100 ms; a MAX31856 per its
-mode, filter and averaging), so a read returns the last finished conversion, as the hardware
-does. Faults from config set the chips' fault bits, or make MISO read all ones (no response).
-"""
+cycle, or from a simulated weld robot (`fleetdaq.edge.drivers.weld_cell`) when the sim names its
+cell. The chips convert on their own schedule (a MAX31855 about every 100 ms; a MAX31856 per its
+mode, filter and averaging), so a read returns the last finished conversion, as the hardware does.
+Faults from config set the chips' fault bits, or make MISO read all ones (no response)."""
 
 from __future__ import annotations
 
@@ -17,8 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from edge.drivers.max31855 import Max31855Stream, ThermocoupleSim, encode_max31855
-from edge.drivers.max31856 import (
+from fleetdaq.edge.drivers.max31855 import Max31855Stream, ThermocoupleSim, encode_max31855
+from fleetdaq.edge.drivers.max31856 import (
     CR0_1SHOT,
     CR0_50HZ,
     CR0_CMODE,
@@ -31,11 +30,11 @@ from edge.drivers.max31856 import (
     Max31856Stream,
     encode_max31856,
 )
-from edge.drivers.pacing import TimeSource
-from edge.drivers.shared import SharedDevices
-from edge.drivers.simfaults import FaultSchedule
-from edge.drivers.spibus import SpiFactory
-from edge.drivers.weld_cell import WeldCell, cell_key
+from fleetdaq.edge.drivers.pacing import TimeSource
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.simfaults import FaultSchedule
+from fleetdaq.edge.drivers.spibus import SpiFactory
+from fleetdaq.edge.drivers.weld_cell import WeldCell, cell_key
 
 _STEP_S = 0.05
 
@@ -220,7 +219,8 @@ def _cell(
 def max31855_transport(
     cfg: Max31855Stream, clock: TimeSource, shared: SharedDevices | None = None
 ) -> SpiFactory:
-    """The SpiDev factory `max31855` gets when its config has `sim:` (edge.drivers.table)."""
+    """The SpiDev factory `max31855` gets when its config has `sim:`
+    (fleetdaq.edge.drivers.table)."""
     sim = cfg.sim
     assert sim is not None
     cell = _cell(sim, clock, shared)
@@ -230,7 +230,8 @@ def max31855_transport(
 def max31856_transport(
     cfg: Max31856Stream, clock: TimeSource, shared: SharedDevices | None = None
 ) -> SpiFactory:
-    """The SpiDev factory `max31856` gets when its config has `sim:` (edge.drivers.table)."""
+    """The SpiDev factory `max31856` gets when its config has `sim:`
+    (fleetdaq.edge.drivers.table)."""
     sim = cfg.sim
     assert sim is not None
     cell = _cell(sim, clock, shared)

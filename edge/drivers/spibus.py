@@ -9,8 +9,8 @@ from typing import Annotated, Protocol
 
 from pydantic import Field
 
-from edge.errors import DeviceError, DeviceNotFound, DriverUnavailable
-from edge.schema import Int, Strict
+from fleetdaq.contract.errors import DeviceError, DeviceNotFound, DriverUnavailable
+from fleetdaq.contract.schema import Int, Strict
 
 
 class SpiDev(Protocol):

@@ -19,34 +19,34 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import Field
 
-from edge.drivers.base import Driver, OutputDriver
-from edge.drivers.environment_sim import EnvironmentSim, EnvironmentSimStream
-from edge.drivers.hd44780 import LcdDisplay
-from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
-from edge.drivers.labjack_t8_out import (
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.contract.schema import OutputBase, StreamBase
+from fleetdaq.edge.drivers.base import Driver, OutputDriver
+from fleetdaq.edge.drivers.environment_sim import EnvironmentSim, EnvironmentSimStream
+from fleetdaq.edge.drivers.hd44780 import LcdDisplay
+from fleetdaq.edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
+from fleetdaq.edge.drivers.labjack_t8_out import (
     LabJackT8DacOutput,
     LabJackT8DioOutput,
     T8DacDriver,
     T8DioDriver,
 )
-from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
-from edge.drivers.max31855 import Max31855, Max31855Stream
-from edge.drivers.max31856 import Max31856, Max31856Stream
-from edge.drivers.mcp4725 import Mcp4725Driver, Mcp4725Output
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.pcf8574 import Pcf8574Driver, Pcf8574Output
-from edge.drivers.shared import SharedDevices
-from edge.drivers.sht3x import Sht3x, Sht3xStream
-from edge.drivers.thermocouple_sim import ThermocoupleSim, ThermocoupleSimStream
-from edge.drivers.wave_sim import WaveSim, WaveSimStream
-from edge.drivers.weld_robot import (
+from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
+from fleetdaq.edge.drivers.max31855 import Max31855, Max31855Stream
+from fleetdaq.edge.drivers.max31856 import Max31856, Max31856Stream
+from fleetdaq.edge.drivers.mcp4725 import Mcp4725Driver, Mcp4725Output
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.pcf8574 import Pcf8574Driver, Pcf8574Output
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.sht3x import Sht3x, Sht3xStream
+from fleetdaq.edge.drivers.thermocouple_sim import ThermocoupleSim, ThermocoupleSimStream
+from fleetdaq.edge.drivers.wave_sim import WaveSim, WaveSimStream
+from fleetdaq.edge.drivers.weld_robot import (
     WeldRobotResume,
     WeldRobotResumeOutput,
     WeldRobotSim,
     WeldRobotSimStream,
 )
-from edge.errors import DriverError
-from edge.schema import OutputBase, StreamBase
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,13 +68,19 @@ DRIVERS: dict[str, DriverSpec] = {
     "wave_sim": DriverSpec(WaveSimStream, WaveSim),
     "thermocouple_sim": DriverSpec(ThermocoupleSimStream, ThermocoupleSim),
     "environment_sim": DriverSpec(EnvironmentSimStream, EnvironmentSim),
-    "labjack_t8": DriverSpec(LabJackT8Stream, LabJackT8, "edge.drivers.sim_ljm:t8_transport"),
-    "labjack_t8_poll": DriverSpec(
-        LabJackT8PollStream, LabJackT8Poll, "edge.drivers.sim_ljm:t8_transport"
+    "labjack_t8": DriverSpec(
+        LabJackT8Stream, LabJackT8, "fleetdaq.edge.drivers.sim_ljm:t8_transport"
     ),
-    "max31855": DriverSpec(Max31855Stream, Max31855, "edge.drivers.sim_spi:max31855_transport"),
-    "max31856": DriverSpec(Max31856Stream, Max31856, "edge.drivers.sim_spi:max31856_transport"),
-    "sht3x": DriverSpec(Sht3xStream, Sht3x, "edge.drivers.sim_smbus:sht3x_transport"),
+    "labjack_t8_poll": DriverSpec(
+        LabJackT8PollStream, LabJackT8Poll, "fleetdaq.edge.drivers.sim_ljm:t8_transport"
+    ),
+    "max31855": DriverSpec(
+        Max31855Stream, Max31855, "fleetdaq.edge.drivers.sim_spi:max31855_transport"
+    ),
+    "max31856": DriverSpec(
+        Max31856Stream, Max31856, "fleetdaq.edge.drivers.sim_spi:max31856_transport"
+    ),
+    "sht3x": DriverSpec(Sht3xStream, Sht3x, "fleetdaq.edge.drivers.sim_smbus:sht3x_transport"),
     "weld_robot_sim": DriverSpec(WeldRobotSimStream, WeldRobotSim, shared=True),
 }
 
@@ -93,18 +99,22 @@ class OutputSpec:
 
 OUTPUTS: dict[str, OutputSpec] = {
     "labjack_t8_dac": OutputSpec(
-        LabJackT8DacOutput, T8DacDriver, "edge.drivers.sim_ljm:t8_transport"
+        LabJackT8DacOutput, T8DacDriver, "fleetdaq.edge.drivers.sim_ljm:t8_transport"
     ),
     "labjack_t8_dio": OutputSpec(
-        LabJackT8DioOutput, T8DioDriver, "edge.drivers.sim_ljm:t8_transport"
+        LabJackT8DioOutput, T8DioDriver, "fleetdaq.edge.drivers.sim_ljm:t8_transport"
     ),
-    "pcf8574": OutputSpec(Pcf8574Output, Pcf8574Driver, "edge.drivers.sim_smbus:pcf8574_transport"),
-    "mcp4725": OutputSpec(Mcp4725Output, Mcp4725Driver, "edge.drivers.sim_smbus:mcp4725_transport"),
+    "pcf8574": OutputSpec(
+        Pcf8574Output, Pcf8574Driver, "fleetdaq.edge.drivers.sim_smbus:pcf8574_transport"
+    ),
+    "mcp4725": OutputSpec(
+        Mcp4725Output, Mcp4725Driver, "fleetdaq.edge.drivers.sim_smbus:mcp4725_transport"
+    ),
     "weld_robot_resume": OutputSpec(WeldRobotResumeOutput, WeldRobotResume),
 }
 
 DISPLAYS: dict[str, tuple[type[LcdDisplay], str]] = {
-    "hd44780_pcf8574": (LcdDisplay, "edge.drivers.sim_smbus:lcd_transport"),
+    "hd44780_pcf8574": (LcdDisplay, "fleetdaq.edge.drivers.sim_smbus:lcd_transport"),
 }
 """Display drivers: name -> (schema, simulated transport)."""
 

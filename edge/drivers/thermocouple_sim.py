@@ -14,8 +14,8 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
-from edge.drivers.pacing import PacedSim
-from edge.schema import Float, StreamBase
+from fleetdaq.contract.schema import Float, StreamBase
+from fleetdaq.edge.drivers.pacing import PacedSim
 
 
 class ThermocoupleSimStream(StreamBase):

@@ -17,7 +17,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass
 
-from edge.drivers.pacing import TimeSource
+from fleetdaq.edge.drivers.pacing import TimeSource
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,4 +1,4 @@
-"""The simulated weld robot of an AM cell (edge.drivers.weld_cell): its stream
+"""The simulated weld robot of an AM cell (fleetdaq.edge.drivers.weld_cell): its stream
 (`weld_robot_sim`) and its `resume` input as a digital output (`weld_robot_resume`).
 
 Stream channels, named by what they carry (any subset, in any order):
@@ -22,12 +22,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator
 
-from edge.drivers.base import DriverEvent
-from edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from edge.drivers.polled import Poll, PolledDriver
-from edge.drivers.shared import SharedDevices
-from edge.drivers.weld_cell import CellState, WeldCell, cell_key
-from edge.schema import Channel, Float, Int, Name, OutputBase, StreamBase
+from fleetdaq.contract.schema import Channel, Float, Int, Name, OutputBase, StreamBase
+from fleetdaq.edge.drivers.base import DriverEvent
+from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
+from fleetdaq.edge.drivers.polled import Poll, PolledDriver
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.weld_cell import CellState, WeldCell, cell_key
 
 SIGNALS = ("welding", "layer_done", "layer", "waits", "timeouts", "last_wait_s")
 

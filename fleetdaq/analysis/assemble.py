@@ -4,9 +4,8 @@ with the gaps listed.
 Each batch's samples are copied once, from the decompressed chunk straight into the result's
 buffer (a numpy slice assignment per batch; nothing per sample in Python). The buffer is sized
 from the summaries' message counts, so a whole-stream read never grows it; untouched capacity
-is never paged in. Only when batches arrive out of time order (a replay filling an old hole)
-are the rows permuted once at the end.
-"""
+is never paged in. Only when batches arrive out of time order (a replay filling an old hole) are the
+rows permuted once at the end."""
 
 from __future__ import annotations
 
@@ -17,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from edge.wire import BatchDecoder, SampleFormat
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
 from fleetdaq.analysis.window import format_ns
+from fleetdaq.contract.wire import BatchDecoder, SampleFormat
 
 _MAX_HINT_BYTES = 4 << 30
 _TIME_BLOCK_ROWS = 1 << 20
@@ -132,8 +131,8 @@ class Assembler:
 
     def add(self, payload: memoryview | bytes, sample_format: SampleFormat = "float64") -> None:
         """One recorded batch payload: a SampleBatch, or with ``"float32"`` a SampleBatch32
-        (its values are widened to float64 exactly). Raises `edge.errors.WireError` if the
-        payload is not one."""
+        (its values are widened to float64 exactly). Raises `fleetdaq.contract.errors.WireError` if
+        the payload is not one."""
         batch = self._decoder.decode(payload, sample_format)
         h = batch.header
         key = (h.sequence, h.first_sample_time_ns)

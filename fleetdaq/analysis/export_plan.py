@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from edge import __version__
+from fleetdaq import __version__
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.recording import Recording, StreamInfo
 from fleetdaq.analysis.stream import Gap

@@ -10,7 +10,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from edge import __version__
+from fleetdaq import __version__
 from fleetdaq.analysis.export_plan import (
     PARQUET_ROW_GROUP,
     ExportPlan,
@@ -301,7 +301,7 @@ class _Hdf5Writer:
         s = g.create_dataset(
             "status", (scans, width), np.uint8, maxshape=(None, width), chunks=(8192, width)
         )
-        s.attrs["meaning"] = "edge.wire.SampleStatus codes, 0 = valid"
+        s.attrs["meaning"] = "fleetdaq.contract.wire.SampleStatus codes, 0 = valid"
         s.dims[0].attach_scale(g["time"])
         s.dims[1].attach_scale(names)
 

@@ -24,7 +24,7 @@ from typing import Any
 
 from fleetdaq.analysis.errors import DamagedRecording, NoRecording
 from fleetdaq.analysis.mcapio import iter_messages
-from hub.session import ACTIVE_SUFFIX, FILE_INDEX_METADATA
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX, FILE_INDEX_METADATA
 
 Source = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
 """A session folder, a data root, an MCAP file, or a list of those."""

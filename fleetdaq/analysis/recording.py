@@ -16,9 +16,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from edge.cdr import decode
-from edge.errors import WireError
-from edge.messages import (
+from fleetdaq.analysis.assemble import Assembler
+from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
+from fleetdaq.analysis.files import RecordedFile, Source, find_files, load_file, read_attachment
+from fleetdaq.analysis.mcapio import iter_messages
+from fleetdaq.analysis.stream import StreamData
+from fleetdaq.analysis.window import resolve_window
+from fleetdaq.contract.cdr import decode
+from fleetdaq.contract.errors import WireError
+from fleetdaq.contract.messages import (
     ALARM_STATE_TYPE,
     EVENT_TYPE,
     NODE_HEALTH_TYPE,
@@ -26,14 +32,8 @@ from edge.messages import (
     Event,
     NodeHealth,
 )
-from edge.schema import ros_token
-from edge.wire import BatchHeader, read_header, sample_format_of
-from fleetdaq.analysis.assemble import Assembler
-from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
-from fleetdaq.analysis.files import RecordedFile, Source, find_files, load_file, read_attachment
-from fleetdaq.analysis.mcapio import iter_messages
-from fleetdaq.analysis.stream import StreamData
-from fleetdaq.analysis.window import resolve_window
+from fleetdaq.contract.schema import ros_token
+from fleetdaq.contract.wire import BatchHeader, read_header, sample_format_of
 
 T = TypeVar("T")
 WORKERS = min(4, os.cpu_count() or 1)

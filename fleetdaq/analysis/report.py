@@ -18,14 +18,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from edge import __version__
-from edge.messages import AlarmState, Event, NodeHealth
+from fleetdaq import __version__
 from fleetdaq.analysis import plots
 from fleetdaq.analysis.assemble import gaps_between
 from fleetdaq.analysis.envelope import Envelope
 from fleetdaq.analysis.recording import Recording, StreamInfo
 from fleetdaq.analysis.stream import BatchTable, Gap
 from fleetdaq.analysis.window import format_ns
+from fleetdaq.contract.messages import AlarmState, Event, NodeHealth
 
 MAX_BINS = 1000
 MIN_BINS = 60

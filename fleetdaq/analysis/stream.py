@@ -70,7 +70,7 @@ class BatchTable:
     """Scans of the batch in the result."""
     sample_period_ns: npt.NDArray[np.float64]
     clock_state: npt.NDArray[np.uint8]
-    """0 unsynced, 1 locked, 2 holdover (`ptp.quality.ClockState`)."""
+    """0 unsynced, 1 locked, 2 holdover (`fleetdaq.ptp.quality.ClockState`)."""
     clock_offset_ns: npt.NDArray[np.int64]
     grandmaster_id: tuple[str, ...]
 
@@ -82,7 +82,8 @@ class BatchTable:
 class StreamData:
     """A stream's scans in time order: ``data[i, c]`` is channel ``c`` at ``time_ns[i]``.
 
-    Invalid samples are NaN in `data` (their codes, `edge.wire.SampleStatus`, are in `status`
+    Invalid samples are NaN in `data` (their codes, `fleetdaq.contract.wire.SampleStatus`, are in
+    `status`
     when any batch had one). Batches recorded twice (a replay after a hub crash, in one session
     or two) appear once. `gaps` lists where data is missing inside the window.
     """

@@ -180,7 +180,7 @@ def enable(config: str, connect: tuple[str, ...], names: tuple[str, ...], note: 
 def report(session: Path, as_json: bool) -> None:
     """Alarm performance of a recording (ISA-18.2 / EEMUA 191): alarms per 10 min, time in
     flood, the top 10, chattering and standing alarms."""
-    from hub.alarms.report import ReportError, alarm_report
+    from fleetdaq.analysis.alarm_report import ReportError, alarm_report
 
     try:
         r = alarm_report(session)

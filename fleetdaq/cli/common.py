@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 import click
 
 if TYPE_CHECKING:
-    from edge.config.site import SiteConfig
-    from edge.security import TlsFiles
     from fleetdaq.certificate_check import Checked
+    from fleetdaq.contract.config.site import SiteConfig
+    from fleetdaq.runtime.security import TlsFiles
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -83,8 +83,8 @@ def hub_options(f: F) -> F:
 
 def load_site(path: str | Path) -> SiteConfig:
     """The validated site file, or one line (file, key path, problem) and exit 2."""
-    from edge.config.load import load_config
-    from edge.errors import ConfigError
+    from fleetdaq.contract.config.load import load_config
+    from fleetdaq.contract.errors import ConfigError
 
     try:
         return load_config(path)
@@ -154,7 +154,7 @@ def open_client(
 ) -> Any:
     """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable
     (`also` ends it). With the site's `security.tls`, the operator's certificate
-    (`edge.security.operator_tls`)."""
+    (`fleetdaq.runtime.security.operator_tls`)."""
     try:
         return _open(endpoints, timeout_ms, site, also)
     except NoAnswer as err:
@@ -165,11 +165,11 @@ def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: 
     """`open_client`, raising `NoAnswer` instead of exiting."""
     import zenoh
 
-    from edge.zenoh_session import client_config
+    from fleetdaq.runtime.zenoh_session import client_config
 
     tls = None
     if site is not None and site.security.tls:
-        from edge.security import SecretFileError, operator_tls
+        from fleetdaq.runtime.security import SecretFileError, operator_tls
 
         try:
             tls = operator_tls(Path(site.security.pki_dir))
@@ -207,7 +207,7 @@ def _warn_if_ending(tls: TlsFiles, site: SiteConfig) -> None:
     """One line on stderr when the operator's certificate ends within the days the hub warns
     of its own (certificate_expiring): the command still runs, and nobody is locked out at
     3 a.m. by a date they were never told of."""
-    from edge.certificate_dates import warn_days
+    from fleetdaq.runtime.certificate_dates import warn_days
 
     mine = _judge_pair(tls, warn_days(site))[0]
     if mine.state == "expiring":
@@ -230,13 +230,13 @@ def operator_key(site: SiteConfig, what: str) -> str:
     """The key of the hub's service `what` for this operator: ``.../hub/<what>``, or with
     security on ``.../hub/<what>/by/<name>``, the name in this operator's certificate (the
     router lets a certificate ask only under its own name)."""
-    from edge.keys import SiteKeys
+    from fleetdaq.contract.keys import SiteKeys
 
     key = SiteKeys(site.site).hub(what)
     if not site.security.tls:
         return key
-    from edge.security import operator_tls
     from fleetdaq.pki import operator_name
+    from fleetdaq.runtime.security import operator_tls
 
     return f"{key}/by/{operator_name(operator_tls(Path(site.security.pki_dir)).cert)}"
 
@@ -322,7 +322,7 @@ def reads_hub_answer(f: F) -> F:
         try:
             return f(*args, **kwargs)
         except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
-            from edge import __version__
+            from fleetdaq import __version__
 
             fail(
                 f"the hub's answer is not one this fleetdaq ({__version__}) reads "
@@ -339,7 +339,7 @@ def check_tls(config: str | Path, site: SiteConfig, who: str, partition: str | N
     read -> one line and exit 2."""
     if not site.security.tls:
         return
-    from edge.security import SecretFileError, hub_tls, node_tls, operator_tls
+    from fleetdaq.runtime.security import SecretFileError, hub_tls, node_tls, operator_tls
 
     pki = Path(site.security.pki_dir)
     try:

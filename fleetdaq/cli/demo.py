@@ -53,13 +53,13 @@ def demo(
 
     The dashboard is served as the site file says (http://127.0.0.1:8080/ for the demo site);
     the demo gives its user `demo` a new random password at each start and prints it."""
-    from edge.config.site import demo_config_path
-    from edge.paths import default_demo_dir
+    from fleetdaq.contract.config.site import demo_config_path
+    from fleetdaq.runtime.paths import default_demo_dir
 
     path = Path(config) if config else demo_config_path()
     site = load_site(path)
     if listen:
-        from edge.schema import check_endpoint
+        from fleetdaq.contract.schema import check_endpoint
 
         try:
             check_endpoint(listen)
@@ -67,16 +67,16 @@ def demo(
             fail(f"--listen: {err}")
     for option, value in (("--dashboard", dashboard), ("--foxglove", foxglove)):
         if value and value != "off":
-            from edge.config.dashboard import check_listen
+            from fleetdaq.hub.config.dashboard import check_listen
 
             try:
                 check_listen(value)
             except ValueError as err:
                 fail(f"{option}: {err}")
-    from edge.writable import UnwritablePlace
-    from hub.data_lock import DataFolderInUse
-    from hub.demo import run_demo
-    from hub.web.users import UsersFileError
+    from fleetdaq.cli.demo_screen import run_demo
+    from fleetdaq.hub.live.web.users import UsersFileError
+    from fleetdaq.hub.recording.data_lock import DataFolderInUse
+    from fleetdaq.runtime.writable import UnwritablePlace
 
     # The edges run in process groups of their own (a terminal's Ctrl-C or hangup reaches the
     # demo alone), so the demo stops them on either.

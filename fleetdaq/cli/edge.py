@@ -52,7 +52,7 @@ def edge(
     if node not in site.nodes:
         fail(f"{config}: nodes: no node named {node!r} (have: {', '.join(site.nodes)})")
     if connect:
-        from edge.schema import check_endpoint
+        from fleetdaq.contract.schema import check_endpoint
 
         for endpoint in connect:
             try:
@@ -61,9 +61,9 @@ def edge(
                 fail(f"--connect: {err}")
     check_tls(config, site, node)
     setup_logging(verbose)
-    from edge.agent import EdgeAgent
-    from edge.errors import DriverError
-    from edge.writable import UnwritablePlace, check_folder
+    from fleetdaq.contract.errors import DriverError
+    from fleetdaq.edge.agent import EdgeAgent
+    from fleetdaq.runtime.writable import UnwritablePlace, check_folder
 
     try:
         agent = EdgeAgent(site, node, list(connect) or None, Path(spool_dir) if spool_dir else None)

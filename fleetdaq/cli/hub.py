@@ -61,7 +61,7 @@ def hub(
     stop = stop_on_signals()
     site = load_site(config)
     if listen:
-        from edge.schema import check_endpoint
+        from fleetdaq.contract.schema import check_endpoint
 
         for endpoint in listen:
             try:
@@ -70,12 +70,12 @@ def hub(
                 fail(f"--listen: {err}")
     check_partition(site, config, partition)
     setup_logging(verbose)
-    from edge.writable import UnwritablePlace
-    from hub.data_lock import DataFolderInUse
-    from hub.errors import HubError, RouterError, SecretError
-    from hub.partition import PartitionRuntime
-    from hub.runtime import HubRuntime
-    from hub.web.users import UsersFileError
+    from fleetdaq.hub.errors import HubError, RouterError, SecretError
+    from fleetdaq.hub.live.web.users import UsersFileError
+    from fleetdaq.hub.partitions.runtime import PartitionRuntime
+    from fleetdaq.hub.recording.data_lock import DataFolderInUse
+    from fleetdaq.hub.runtime import HubRuntime
+    from fleetdaq.runtime.writable import UnwritablePlace
 
     check_tls(config, site, "hub", partition)
     data = Path(data_dir) if data_dir else None

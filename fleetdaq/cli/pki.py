@@ -53,8 +53,8 @@ def init(
     force: bool,
 ) -> None:
     """Create the site CA and the hub's router certificate."""
-    from edge.security import SecretFileError
     from fleetdaq.pki import PkiError, init
+    from fleetdaq.runtime.security import SecretFileError
 
     if config:
         site = load_site(config).site
@@ -107,8 +107,8 @@ def issue(
     force: bool,
 ) -> None:
     """Issue a certificate for a node (CN = its name), a partition hub or an operator."""
-    from edge.security import SecretFileError
     from fleetdaq.pki import PkiError, issue_node, issue_operator, issue_partition
+    from fleetdaq.runtime.security import SecretFileError
 
     if operator and partition:
         fail("pki issue: NAME is an operator or a partition hub, not both", 2)
@@ -149,8 +149,8 @@ def issue(
 def hub_pair(folder: Path, hub_names: tuple[str, ...], days: int, force: bool) -> None:
     """Issue the main hub's router pair again with the site CA already there (its certificate
     ends, or the hub has a new name or address): the nodes keep their pairs and ca.crt."""
-    from edge.security import SecretFileError
     from fleetdaq.pki import PkiError, issue_hub
+    from fleetdaq.runtime.security import SecretFileError
 
     try:
         made, names = issue_hub(folder, list(hub_names) or None, days, force)
@@ -210,7 +210,7 @@ def acl(config: str) -> None:
     certificate may do once security.tls is on."""
     import json
 
-    from hub.acl import access_control
+    from fleetdaq.hub.routing.acl import access_control
 
     click.echo(json.dumps(access_control(load_site(config)), indent=2))
 

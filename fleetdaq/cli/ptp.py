@@ -47,8 +47,8 @@ def ptp_status(
     """Check this machine's time sync. Exit 0 ok, 1 warning, 2 failure."""
     from dataclasses import replace
 
-    from ptp.checks import Thresholds
-    from ptp.reader import ChronyReader, Ptp4lReader, Reader
+    from fleetdaq.ptp.checks import Thresholds
+    from fleetdaq.ptp.reader import ChronyReader, Ptp4lReader, Reader
 
     thresholds: Thresholds | None = None
     expect_hardware: bool | None = None
@@ -58,7 +58,7 @@ def ptp_status(
         name = node or (next(iter(site.nodes)) if len(site.nodes) == 1 else None)
         if name is None or name not in site.nodes:
             fail(f"{config}: nodes: say which node with --node (have: {', '.join(site.nodes)})")
-        from edge.time_sync import thresholds as node_thresholds
+        from fleetdaq.edge.time_sync import thresholds as node_thresholds
 
         clock = site.nodes[name].clock
         thresholds = node_thresholds(clock)
@@ -105,7 +105,7 @@ def ptp_status(
 def ptp_fleet(config: str, as_json: bool, connect: tuple[str, ...], timeout: float) -> None:
     """Every node's clock, as the hub sees it. Exit 0 when every node is LOCKED on one
     grandmaster, 1 on warnings (holdover), 2 on failures (or no hub)."""
-    from hub.fleet_time import FleetView
+    from fleetdaq.hub.nodes.fleet_time import FleetView
 
     status = hub_request(config, connect, "status", None, timeout)
     view = FleetView.from_dict(status.get("fleet") or {"nodes": []})

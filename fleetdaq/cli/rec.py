@@ -68,7 +68,7 @@ def _act(
 ) -> None:
     body = {"action": action, "note": note, "user": getpass.getuser(), "host": socket.gethostname()}
     what = f"partition/{partition}/recorder" if partition is not None else "recorder"
-    # Past the main hub's own wait for its partitions (hub.partition_recorders.ANSWER_S).
+    # Past the main hub's own wait for its partitions (fleetdaq.hub.partitions.recorders.ANSWER_S).
     reply = hub_request(config, connect, what, body, timeout=150.0, partition=partition)
     if as_json:
         click.echo(json.dumps(reply, indent=2))

@@ -18,7 +18,7 @@ MIN_PASSWORD = 8
 
 
 def _users_file(file: str | None, config: str | None) -> Path:
-    from hub.web.users import default_users_file
+    from fleetdaq.hub.live.web.users import default_users_file
 
     if file:
         return Path(file)
@@ -68,7 +68,7 @@ def add(
     name: str, file: str | None, config: str | None, password_stdin: bool, role: str | None
 ) -> None:
     """Add user NAME (or give them a new password): asked twice, or read from stdin."""
-    from hub.web.users import (
+    from fleetdaq.hub.live.web.users import (
         UsersFileError,
         check_name,
         check_role,
@@ -115,7 +115,7 @@ def add(
 def set_role(name: str, role: str, file: str | None, config: str | None) -> None:
     """Give user NAME the role ROLE (view: look; control: also act). Their open sessions
     follow at their next click."""
-    from hub.web.users import UsersFileError, check_role, read_user_lines, write_users
+    from fleetdaq.hub.live.web.users import UsersFileError, check_role, read_user_lines, write_users
 
     path = _users_file(file, config)
     try:
@@ -135,7 +135,7 @@ def set_role(name: str, role: str, file: str | None, config: str | None) -> None
 @_where
 def remove(name: str, file: str | None, config: str | None) -> None:
     """Remove user NAME: their open sessions end at their next request."""
-    from hub.web.users import UsersFileError, read_users, write_users
+    from fleetdaq.hub.live.web.users import UsersFileError, read_users, write_users
 
     path = _users_file(file, config)
     try:
@@ -153,7 +153,7 @@ def remove(name: str, file: str | None, config: str | None) -> None:
 @_where
 def list_users(file: str | None, config: str | None) -> None:
     """The users, one a line: name and role."""
-    from hub.web.users import UsersFileError, read_user_lines
+    from fleetdaq.hub.live.web.users import UsersFileError, read_user_lines
 
     path = _users_file(file, config)
     try:

@@ -26,7 +26,7 @@ def verify(path: Path, recover: bool, as_json: bool) -> None:
 
     Exit 0 when every file is sound, recovered or being written, 1 otherwise.
     """
-    from hub.verify import verify_path
+    from fleetdaq.hub.recording.verify import verify_path
 
     reports = verify_path(path, recover)
     if as_json:

@@ -14,7 +14,7 @@ from fleetdaq.fleet.ssh import SshOptions
 from fleetdaq.fleet.status import FleetStatus, HostStatus, fleet_problems
 
 if TYPE_CHECKING:
-    from edge.config.site import SiteConfig
+    from fleetdaq.contract.config.site import SiteConfig
 
 
 def local_version() -> str:

@@ -4,7 +4,7 @@ virtualenv, its site file, the node's spool and the hub's recordings, the system
 Directories come from the inventory (``fleetdaq_spool_dir``, ``fleetdaq_data_dir``), else the
 site file given with ``--config`` (``nodes.<node>.spool.dir``, ``hub.data_dir``), else the
 services' state directory (``fleetdaq_state_dir``, default ``/var/lib/fleetdaq``: systemd's
-``StateDirectory=fleetdaq``, as `edge.paths` resolves it for a service). All under
+``StateDirectory=fleetdaq``, as `fleetdaq.runtime.paths` resolves it for a service). All under
 ``fleetdaq_prefix``.
 """
 
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from fleetdaq.fleet.inventory import Host
 
 if TYPE_CHECKING:
-    from edge.config.site import SiteConfig
+    from fleetdaq.contract.config.site import SiteConfig
 
 HUB_UNIT = "fleetdaq-hub"
 EDGE_UNIT = "fleetdaq-edge"
@@ -66,7 +66,7 @@ def layout_for(host: Host, site: SiteConfig | None) -> HostLayout:
     if host.is_hub:
         configured = site.hub.data_dir if site is not None else None
         root = configured or posixpath.join(host.state_dir, "data")
-        if host.partition is not None:  # as `hub.partition.partition_data_dir`
+        if host.partition is not None:  # as `fleetdaq.hub.partitions.runtime.partition_data_dir`
             part = site.hub.partitions.get(host.partition) if site is not None else None
             own = part.data_dir if part is not None else None
             root = own or posixpath.join(root, host.partition)

@@ -52,7 +52,7 @@ def parse_version(stdout: str) -> str | None:
 
 def parse_time(stdout: str, expected: bool) -> TimeView:
     """``fleetdaq ptp status --json`` -> `TimeView`. Raises ValueError on anything else."""
-    from ptp.status import TimeStatus
+    from fleetdaq.ptp.status import TimeStatus
 
     try:
         data = json.loads(stdout)
@@ -75,8 +75,8 @@ def parse_time(stdout: str, expected: bool) -> TimeView:
 
 def parse_certificates(stdout: str) -> CertificatesView:
     """``fleetdaq pki check --json`` -> `CertificatesView`. Raises ValueError on anything else."""
-    from edge.certificate_dates import DAY_NS
     from fleetdaq.certificate_check import STATES
+    from fleetdaq.runtime.certificate_dates import DAY_NS
 
     try:
         d: dict[str, Any] = json.loads(stdout)

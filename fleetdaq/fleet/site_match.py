@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from fleetdaq.fleet.inventory import Inventory
 
 if TYPE_CHECKING:
-    from edge.config.site import SiteConfig
+    from fleetdaq.contract.config.site import SiteConfig
 
 
 def mismatches(inventory: Inventory, site: SiteConfig, site_path: str | Path) -> list[str]:

@@ -18,7 +18,7 @@ class TimeView:
     """The host's own ``fleetdaq ptp status --json``, the parts an operator reads first."""
 
     state: str
-    """``locked``, ``holdover``, ``freerun``, ... (`ptp.status.SyncState`)."""
+    """``locked``, ``holdover``, ``freerun``, ... (`fleetdaq.ptp.status.SyncState`)."""
     level: str
     """``ok``, ``warn``, ``fail``."""
     offset_ns: int | None

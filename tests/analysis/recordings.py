@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from edge.cdr import encode
-from edge.config.hub import RecorderConfig
-from edge.messages import (
+from fleetdaq.contract.cdr import encode
+from fleetdaq.contract.messages import (
     ALARM_STATE_TYPE,
     EVENT_TYPE,
     NODE_HEALTH_TYPE,
@@ -24,9 +23,10 @@ from edge.messages import (
     TimeSyncStatus,
     make_event,
 )
-from edge.wire import BatchEncoder, SampleFormat
-from hub.session import RecordingSession
-from ptp.quality import ClockQuality, ClockState
+from fleetdaq.contract.wire import BatchEncoder, SampleFormat
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import RecordingSession
+from fleetdaq.ptp.quality import ClockQuality, ClockState
 
 T0 = 1_795_000_000_000_000_000
 SEC = 1_000_000_000

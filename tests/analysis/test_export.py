@@ -16,10 +16,10 @@ import pyarrow.parquet as pq
 import pytest
 import xarray as xr
 
-from edge.wire import SampleStatus
 from fleetdaq.analysis.errors import AnalysisError
 from fleetdaq.analysis.export import plan_export, run_export
 from fleetdaq.analysis.recording import Recording
+from fleetdaq.contract.wire import SampleStatus
 from tests.analysis.recordings import (
     CHANNELS,
     SEC,

@@ -13,10 +13,15 @@ from mcap.writer import Writer
 from rosbags.highlevel import AnyReader
 
 import fleetdaq.read as fr
-from edge.config.hub import RecorderConfig
-from edge.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE, BatchEncoder, SampleStatus
-from hub.session import ACTIVE_SUFFIX, RecordingSession
-from hub.verify import recover_file
+from fleetdaq.contract.wire import (
+    SAMPLE_BATCH_SCHEMA,
+    SAMPLE_BATCH_TYPE,
+    BatchEncoder,
+    SampleStatus,
+)
+from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX, RecordingSession
+from fleetdaq.hub.recording.verify import recover_file
 from tests.analysis.recordings import (
     CHANNELS,
     SEC,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.errors import ConfigError
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import ConfigError
 
 HEAD = "site: s\nnodes:\n  n:\n    streams:\n"
 

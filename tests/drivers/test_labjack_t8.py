@@ -15,25 +15,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edge.config.load import parse_config
-from edge.config.node import SpoolConfig
-from edge.device_time import DeviceTimeFit
-from edge.drivers.base import Block
-from edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs
-from edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream, decode_scans
-from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
-from edge.drivers.pacing import SystemTime, VirtualTime
-from edge.drivers.sim_ljm import SimLJM, errorcodes
-from edge.errors import (
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.config.node import SpoolConfig
+from fleetdaq.contract.errors import (
     ConfigError,
     DeviceDisconnected,
     DeviceError,
     DeviceNotFound,
 )
-from edge.event_publisher import EventPublisher
-from edge.spool import StreamSpool
-from edge.stream_loop import StreamLoop
-from edge.wire import SampleStatus
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.device_time import DeviceTimeFit
+from fleetdaq.edge.drivers.base import Block
+from fleetdaq.edge.drivers.labjack_ljm import CORE_TIMER_HZ, CoreTimer, T8Outputs
+from fleetdaq.edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream, decode_scans
+from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
+from fleetdaq.edge.drivers.pacing import SystemTime, VirtualTime
+from fleetdaq.edge.drivers.sim_ljm import SimLJM, errorcodes
+from fleetdaq.edge.event_publisher import EventPublisher
+from fleetdaq.edge.spool import StreamSpool
+from fleetdaq.edge.stream_loop import StreamLoop
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 from tests.procs import REPO, wait_until
@@ -462,9 +462,9 @@ ctypes.CDLL = NoLibLabJackM
 """
 CREATE_T8_DRIVERS = """
 import sys
-from edge.config.load import parse_config
-from edge.drivers.table import create_driver
-from edge.errors import DriverUnavailable
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.edge.drivers.table import create_driver
+from fleetdaq.contract.errors import DriverUnavailable
 
 SITE = (
     "site: s\\nnodes:\\n  wec:\\n    streams:\\n"

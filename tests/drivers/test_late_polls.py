@@ -10,14 +10,14 @@ import threading
 
 import numpy as np
 
-from edge.config.load import parse_config
-from edge.device_time import DeviceTimeFit
-from edge.drivers.base import Block
-from edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.shared import SharedDevices
-from edge.drivers.sim_ljm import SimLJM
-from edge.drivers.table import create_driver
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.edge.device_time import DeviceTimeFit
+from fleetdaq.edge.drivers.base import Block
+from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.sim_ljm import SimLJM
+from fleetdaq.edge.drivers.table import create_driver
 
 SITE = """\
 site: s

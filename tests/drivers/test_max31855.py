@@ -10,12 +10,17 @@ import logging
 import numpy as np
 import pytest
 
-from edge.config.load import parse_config
-from edge.drivers.max31855 import Max31855, Max31855Stream, decode_max31855, encode_max31855
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.table import create_driver
-from edge.errors import DeviceNotFound, DriverUnavailable
-from edge.wire import SampleStatus
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import DeviceNotFound, DriverUnavailable
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.max31855 import (
+    Max31855,
+    Max31855Stream,
+    decode_max31855,
+    encode_max31855,
+)
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.table import create_driver
 from tests.drivers.fakes import DATA, FakeSpiDev
 
 TABLE = json.loads((DATA / "max31855.json").read_text())

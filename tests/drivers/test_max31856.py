@@ -7,18 +7,18 @@ import json
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.drivers.max31856 import (
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import ConfigError, DeviceNotFound
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.max31856 import (
     Max31856,
     Max31856Stream,
     config_registers,
     decode_max31856,
     encode_max31856,
 )
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.table import create_driver
-from edge.errors import ConfigError, DeviceNotFound
-from edge.wire import SampleStatus
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.table import create_driver
 from tests.drivers.fakes import DATA, FakeSpiDev
 
 TABLE = json.loads((DATA / "max31856.json").read_text())

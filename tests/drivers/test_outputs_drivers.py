@@ -11,9 +11,11 @@ from typing import Any
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.drivers.labjack_t8_out import T8DacDriver, T8DioDriver, T8Watchdog
-from edge.drivers.mcp4725 import (
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import DeviceDisconnected, DeviceError
+from fleetdaq.contract.schema import OutputBase
+from fleetdaq.edge.drivers.labjack_t8_out import T8DacDriver, T8DioDriver, T8Watchdog
+from fleetdaq.edge.drivers.mcp4725 import (
     Mcp4725Driver,
     code_to_volts,
     decode_mcp4725,
@@ -21,16 +23,14 @@ from edge.drivers.mcp4725 import (
     volts_to_code,
     write_dac,
 )
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.pcf8574 import Pcf8574Driver, level_for, pin_level, port_with, value_of
-from edge.drivers.shared import SharedDevices
-from edge.drivers.sim_ljm import SimLJM
-from edge.drivers.sim_smbus import SimMcp4725, SimPcf8574, SimSmbus2
-from edge.drivers.table import create_driver, create_output
-from edge.drivers.weld_cell import WeldCell
-from edge.drivers.weld_robot import WeldRobotResume
-from edge.errors import DeviceDisconnected, DeviceError
-from edge.schema import OutputBase
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.pcf8574 import Pcf8574Driver, level_for, pin_level, port_with, value_of
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.sim_ljm import SimLJM
+from fleetdaq.edge.drivers.sim_smbus import SimMcp4725, SimPcf8574, SimSmbus2
+from fleetdaq.edge.drivers.table import create_driver, create_output
+from fleetdaq.edge.drivers.weld_cell import WeldCell
+from fleetdaq.edge.drivers.weld_robot import WeldRobotResume
 from tests.drivers.fakes import DATA
 
 MCP = json.loads((DATA / "mcp4725.json").read_text())

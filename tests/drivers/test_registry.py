@@ -10,9 +10,9 @@ from typing import Literal
 
 import pytest
 
-from edge.config.load import load_config
-from edge.drivers.table import DRIVERS, create_driver
-from edge.errors import DriverError
+from fleetdaq.contract.config.load import load_config
+from fleetdaq.contract.errors import DriverError
+from fleetdaq.edge.drivers.table import DRIVERS, create_driver
 from tests.procs import REPO
 
 VENDOR = ("spidev", "labjack", "smbus2")
@@ -29,19 +29,21 @@ def _loaded_vendor_modules(code: str) -> list[str]:
 
 def test_importing_the_edge_and_every_driver_module_loads_no_vendor_library() -> None:
     code = (
-        "import edge.agent, edge.config.load, edge.display, edge.drivers.table\n"
-        "import edge.drivers.labjack_t8, edge.drivers.max31855, edge.drivers.max31856\n"
-        "import edge.drivers.sht3x, edge.drivers.hd44780"
+        "import fleetdaq.edge.agent, fleetdaq.contract.config.load, fleetdaq.edge.display\n"
+        "import fleetdaq.edge.drivers.table\n"
+        "import fleetdaq.edge.drivers.labjack_t8, fleetdaq.edge.drivers.max31855\n"
+        "import fleetdaq.edge.drivers.max31856\n"
+        "import fleetdaq.edge.drivers.sht3x, fleetdaq.edge.drivers.hd44780"
     )
     assert _loaded_vendor_modules(code) == []
 
 
 def test_running_the_demo_sites_simulated_drivers_loads_no_vendor_library() -> None:
     code = (
-        "from edge.config.load import load_config\n"
-        "from edge.config.site import demo_config_path\n"
-        "from edge.drivers.table import create_driver\n"
-        "from edge.display import create_displays\n"
+        "from fleetdaq.contract.config.load import load_config\n"
+        "from fleetdaq.contract.config.site import demo_config_path\n"
+        "from fleetdaq.edge.drivers.table import create_driver\n"
+        "from fleetdaq.edge.display import create_displays\n"
         "site = load_config(demo_config_path())\n"
         "for node in site.nodes.values():\n"
         "    create_displays(node, lambda s, c: None, lambda *a: None)\n"

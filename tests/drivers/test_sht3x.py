@@ -9,12 +9,19 @@ import json
 
 import pytest
 
-from edge.config.load import parse_config
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.sht3x import CrcError, Sht3x, Sht3xStream, crc8, decode_sht3x, encode_sht3x
-from edge.drivers.sim_smbus import SimI2cMsg, SimSht3x, SimSMBus, SimSmbus2
-from edge.errors import DeviceNotFound
-from edge.wire import SampleStatus
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import DeviceNotFound
+from fleetdaq.contract.wire import SampleStatus
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.sht3x import (
+    CrcError,
+    Sht3x,
+    Sht3xStream,
+    crc8,
+    decode_sht3x,
+    encode_sht3x,
+)
+from fleetdaq.edge.drivers.sim_smbus import SimI2cMsg, SimSht3x, SimSMBus, SimSmbus2
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edge.config.load import parse_config
-from edge.drivers.pacing import VirtualTime
-from edge.drivers.shared import SharedDevices
-from edge.drivers.table import create_driver, create_output
-from edge.drivers.weld_cell import WeldCell
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.edge.drivers.pacing import VirtualTime
+from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.table import create_driver, create_output
+from fleetdaq.edge.drivers.weld_cell import WeldCell
 
 S = 1_000_000_000
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.load import load_config
+from fleetdaq.contract.config.load import load_config
 from fleetdaq.fleet.errors import InventoryError
 from fleetdaq.fleet.inventory import Host, load_inventory
 from fleetdaq.fleet.layout import layout_for

@@ -11,12 +11,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from edge.config.notify import NotifyConfig
-from edge.messages import AlarmState, Event
-from hub.bus import EventBus
-from hub.notification import Notification
-from hub.notify.service import EmailNotifier
-from hub.read_model import ReadModel
+from fleetdaq.contract.messages import AlarmState, Event
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.notify import NotifyConfig
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.supervision.notification import Notification
+from fleetdaq.hub.supervision.notify.service import EmailNotifier
 from tests.notify.smtp_server import WAIT_S
 
 

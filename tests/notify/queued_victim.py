@@ -14,9 +14,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from edge.config.notify import NotifyConfig
-from hub.bus import EventBus
-from hub.notify.service import EmailNotifier
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.notify import NotifyConfig
+from fleetdaq.hub.supervision.notify.service import EmailNotifier
 from tests.notify.helpers import WatchedModel, alarm, config
 
 

@@ -7,8 +7,8 @@ import email.policy
 import time
 from email.message import EmailMessage
 
-from hub.notify.compose import Letterhead, compose, duration
-from hub.notify.policy import Item, Outgoing, Snoozing
+from fleetdaq.hub.supervision.notify.compose import Letterhead, compose, duration
+from fleetdaq.hub.supervision.notify.policy import Item, Outgoing, Snoozing
 from tests.notify.helpers import alarm
 
 HEAD = Letterhead("buoy-1", "hub@buoy.example", "https://dash.buoy.example/alarms")

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.notify import SmtpConfig
-from hub.errors import SecretError
-from hub.notify.credentials import Secret, read_password
+from fleetdaq.hub.config.notify import SmtpConfig
+from fleetdaq.hub.errors import SecretError
+from fleetdaq.hub.supervision.notify.credentials import Secret, read_password
 
 
 def smtp(**kw: object) -> SmtpConfig:

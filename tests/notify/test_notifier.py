@@ -19,9 +19,9 @@ from typing import Any
 
 import pytest
 
-from hub.bus import EventBus
-from hub.errors import NotifyError, SecretError
-from hub.notify.service import EmailNotifier
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.errors import NotifyError, SecretError
+from fleetdaq.hub.supervision.notify.service import EmailNotifier
 from tests.notify.helpers import Events, ManualClock, WatchedModel, alarm, config, running
 from tests.notify.smtp_server import WAIT_S, SmtpServer, ThrowawayCA
 from tests.notify.victim import PASSWORD_ENV

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.load import load_config, parse_config
-from edge.errors import ConfigError
+from fleetdaq.contract.config.load import load_config, parse_config
+from fleetdaq.contract.errors import ConfigError
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "config"
 SITE = """\

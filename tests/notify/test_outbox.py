@@ -8,9 +8,9 @@ import math
 import stat
 from pathlib import Path
 
-from hub.notify.held import HeldJournal
-from hub.notify.outbox import Envelope, Outbox
-from hub.notify.policy import Held, Item
+from fleetdaq.hub.supervision.notify.held import HeldJournal
+from fleetdaq.hub.supervision.notify.outbox import Envelope, Outbox
+from fleetdaq.hub.supervision.notify.policy import Held, Item
 from tests.notify.helpers import alarm
 
 MESSAGE = b"Subject: x\r\nTo: a@x.example\r\n\r\nbody\r\n"

@@ -7,8 +7,8 @@ from typing import Any
 
 import pytest
 
-from edge.config.notify import GroupConfig
-from hub.notify.policy import Outgoing, Policy, mail_transition
+from fleetdaq.hub.config.notify import GroupConfig
+from fleetdaq.hub.supervision.notify.policy import Outgoing, Policy, mail_transition
 from tests.notify.helpers import alarm
 
 

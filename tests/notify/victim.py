@@ -13,9 +13,9 @@ import sys
 import threading
 from pathlib import Path
 
-from edge.config.notify import NotifyConfig
-from hub.bus import EventBus
-from hub.notify.service import EmailNotifier
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.notify import NotifyConfig
+from fleetdaq.hub.supervision.notify.service import EmailNotifier
 from tests.notify.helpers import WatchedModel, alarm, config
 
 PASSWORD_ENV = "FLEETDAQ_VICTIM_SMTP_PW"

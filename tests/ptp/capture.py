@@ -13,9 +13,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ptp.datasets import MID
-from ptp.management import Ptp4lClient, decode_response
-from ptp.pmc import run_pmc
+from fleetdaq.ptp.datasets import MID
+from fleetdaq.ptp.management import Ptp4lClient, decode_response
+from fleetdaq.ptp.pmc import run_pmc
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "ptp"
 

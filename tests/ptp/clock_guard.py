@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from ptp.host import KernelClock, read_kernel_clock
+from fleetdaq.ptp.host import KernelClock, read_kernel_clock
 from tests.ptp.lab import CAP_SYS_TIME, servo_refused
 
 TIME_DAEMONS = frozenset(

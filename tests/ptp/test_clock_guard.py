@@ -7,7 +7,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from ptp.host import KernelClock
+from fleetdaq.ptp.host import KernelClock
 from tests.ptp.clock_guard import (
     ClockMark,
     Process,

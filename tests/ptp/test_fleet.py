@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 
-from edge.messages import Event, KeyValue, NodeHealth, TimeSyncStatus
-from hub.fleet_time import FleetTime
-from ptp.status import Check, Level, SyncState, TimeStatus
+from fleetdaq.contract.messages import Event, KeyValue, NodeHealth, TimeSyncStatus
+from fleetdaq.hub.nodes.fleet_time import FleetTime
+from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus
 
 GM_A, GM_B = "aaaaaa.fffe.000001", "bbbbbb.fffe.000002"
 

@@ -9,14 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from ptp.checks import HARDWARE, SOFTWARE, evaluate_chrony, evaluate_ptp4l, graded
-from ptp.chrony import parse_chrony_tracking
-from ptp.datasets import MID, PortState, Ptp4lSnapshot
-from ptp.errors import ManagementError, ParseError
-from ptp.host import KernelClock
-from ptp.management import decode_response, encode_get, snapshot_from
-from ptp.pmc import parse_pmc
-from ptp.status import Level, SyncState, TimeStatus
+from fleetdaq.ptp.checks import HARDWARE, SOFTWARE, evaluate_chrony, evaluate_ptp4l, graded
+from fleetdaq.ptp.chrony import parse_chrony_tracking
+from fleetdaq.ptp.datasets import MID, PortState, Ptp4lSnapshot
+from fleetdaq.ptp.errors import ManagementError, ParseError
+from fleetdaq.ptp.host import KernelClock
+from fleetdaq.ptp.management import decode_response, encode_get, snapshot_from
+from fleetdaq.ptp.pmc import parse_pmc
+from fleetdaq.ptp.status import Level, SyncState, TimeStatus
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "ptp"
 CAPTURES = ("slave_locked", "slave_lost_master", "slave_alone", "grandmaster")
@@ -239,7 +239,7 @@ def test_bad_chrony_output_is_refused(text: str):
 
 
 def test_holdover_keeps_the_grandmaster_it_holds_over_from_and_then_lets_go():
-    from ptp.reader import SyncTracker
+    from fleetdaq.ptp.reader import SyncTracker
 
     tracker = SyncTracker()
     locked = evaluate(pmc_snapshot("slave_locked"))

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from edge.time_sync import PollingTimeSyncMonitor
-from ptp.checks import SOFTWARE
-from ptp.datasets import PortState
-from ptp.host import read_kernel_clock
-from ptp.management import Ptp4lClient, snapshot_from
-from ptp.pmc import parse_pmc, run_pmc, snapshot_via_pmc
-from ptp.reader import Ptp4lReader
-from ptp.status import GRANDMASTER_CHANGED, Level, SyncState
+from fleetdaq.edge.time_sync import PollingTimeSyncMonitor
+from fleetdaq.ptp.checks import SOFTWARE
+from fleetdaq.ptp.datasets import PortState
+from fleetdaq.ptp.host import read_kernel_clock
+from fleetdaq.ptp.management import Ptp4lClient, snapshot_from
+from fleetdaq.ptp.pmc import parse_pmc, run_pmc, snapshot_via_pmc
+from fleetdaq.ptp.reader import Ptp4lReader
+from fleetdaq.ptp.status import GRANDMASTER_CHANGED, Level, SyncState
 from tests.ptp.conftest import SLAVE, PtpLab, locked_to, tool_path
 from tests.ptp.lab import REPO, wait_for
 
@@ -233,7 +233,7 @@ def test_a_better_grandmaster_takes_over_and_the_change_is_raised(baseline: PtpL
 
 def test_the_interface_capabilities_match_ethtool(ptp_lab: PtpLab):
     code = (
-        "from ptp.host import timestamping_caps as t; c = t('eth0');"
+        "from fleetdaq.ptp.host import timestamping_caps as t; c = t('eth0');"
         "print(c.so_timestamping, c.phc_index, c.software, c.hardware)"
     )
     ours = subprocess.run(

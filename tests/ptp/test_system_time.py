@@ -19,7 +19,7 @@ from typing import Any
 
 from rosbags.highlevel import AnyReader
 
-from ptp.reader import Ptp4lReader
+from fleetdaq.ptp.reader import Ptp4lReader
 from tests.procs import HubClient, Proc, free_port, sessions, wait_for_port
 from tests.ptp.conftest import PtpLab
 from tests.ptp.lab import REPO, wait_for

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from edge.config.node import ClockConfig
-from edge.time_sync import thresholds
+from fleetdaq.contract.config.node import ClockConfig
+from fleetdaq.edge.time_sync import thresholds
 from tests.ptp.conftest import PtpLab
 from tests.ptp.lab import SETPRIV, TEMPLATES
 

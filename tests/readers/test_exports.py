@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import fleetdaq.read as fr
-from edge.wire import SampleStatus
+from fleetdaq.contract.wire import SampleStatus
 from tests.analysis.recordings import Batch, make_batches, stream_messages, write_session
 from tests.readers.conftest import REPO, Readers
 

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX
 from fleetdaq.read import read_stream
-from hub.session import ACTIVE_SUFFIX
 from tests.procs import REPO, HubClient, Proc, free_port, sessions, stream_view, wait_for_port
 from tests.readers.conftest import Readers
 
@@ -252,7 +252,9 @@ def _run_snippet(readers: Readers, name: str, session: Path, epilogue: str) -> A
     code = snippet(name)
     assert f'"{SESSION_IN_README}"' in code
     code = code.replace(f'"{SESSION_IN_README}"', json.dumps(str(session)))
-    code = code.replace(f'"{MSGS_IN_README}"', json.dumps(str(REPO / "edge" / MSGS_IN_README)))
+    code = code.replace(
+        f'"{MSGS_IN_README}"', json.dumps(str(REPO / "fleetdaq" / "contract" / MSGS_IN_README))
+    )
     return json.loads(readers.run(code + "\nimport json\n" + epilogue))
 
 

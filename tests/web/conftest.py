@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 from argon2 import PasswordHasher
 
-from edge.config.load import parse_config
-from edge.config.security import Role
-from edge.wire import BatchEncoder, read_header
-from hub.batch_feed import BatchFeed, FedBatch
-from hub.bus import EventBus
-from hub.live_plots import LivePlots
-from hub.read_model import ReadModel
-from hub.web.parts import HubParts
-from hub.web.service import WebService
-from hub.web.users import write_users
-from ptp.quality import UNSYNCED
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.config.security import Role
+from fleetdaq.contract.wire import BatchEncoder, read_header
+from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.live.plots import LivePlots
+from fleetdaq.hub.live.web.parts import HubParts
+from fleetdaq.hub.live.web.service import WebService
+from fleetdaq.hub.live.web.users import write_users
+from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.ptp.quality import UNSYNCED
 from tests.procs import wait_until
 
 CHEAP = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)

@@ -16,10 +16,10 @@ import aiohttp
 import numpy as np
 import pytest
 
-from hub.web import frames
-from hub.web.live import Client
-from hub.web.service import DashboardError, WebService
-from hub.web.stats import WebStats
+from fleetdaq.hub.live.web import frames
+from fleetdaq.hub.live.web.live import Client
+from fleetdaq.hub.live.web.service import DashboardError, WebService
+from fleetdaq.hub.live.web.stats import WebStats
 from tests.procs import wait_until
 from tests.web.conftest import Web
 
@@ -263,7 +263,7 @@ def test_a_taken_port_fails_the_start_with_one_line(make_web: MakeWeb):
 
 
 def _site_with(web: Web, cfg: Any) -> Any:
-    from edge.config.load import parse_config
+    from fleetdaq.contract.config.load import parse_config
     from tests.web.conftest import SITE
 
     text = SITE.format(users=web.users_file, open_view="true", metrics="true", tls="")

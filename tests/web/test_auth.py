@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from hub.web.auth import Auth, RateLimiter, csrf_ok, origin_problem
-from hub.web.users import (
+from fleetdaq.hub.live.web.auth import Auth, RateLimiter, csrf_ok, origin_problem
+from fleetdaq.hub.live.web.users import (
     User,
     UsersFile,
     UsersFileError,

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from hub.session import ACTIVE_SUFFIX
+from fleetdaq.hub.recording.session import ACTIVE_SUFFIX
 from tests.procs import REPO, wait_until
 from tests.web.netns import Netns, NsProc, ensure_chromium, netns_problem
 

@@ -8,8 +8,8 @@ import struct
 
 import numpy as np
 
-from hub.live_plots import Columns
-from hub.web import frames
+from fleetdaq.hub.live.plots import Columns
+from fleetdaq.hub.live.web import frames
 
 NAN = math.nan
 

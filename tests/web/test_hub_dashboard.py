@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from rosbags.highlevel import AnyReader
 
-from hub.web.users import hash_password, write_users
+from fleetdaq.hub.live.web.users import hash_password, write_users
 from tests.procs import REPO, Proc, free_port, wait_for_port, wait_until
 from tests.web.conftest import Http
 from tests.web.netns import Netns, netns_problem, run

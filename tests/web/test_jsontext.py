@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from hub.read_model import to_jsonable
-from hub.web import jsontext
+from fleetdaq.hub.live.web import jsontext
+from fleetdaq.hub.read_model import to_jsonable
 
 
 class Colour(enum.Enum):

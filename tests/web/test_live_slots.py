@@ -12,8 +12,8 @@ from typing import Any
 import aiohttp
 import pytest
 
-from edge.config.load import parse_config
-from edge.errors import ConfigError
+from fleetdaq.contract.config.load import parse_config
+from fleetdaq.contract.errors import ConfigError
 from tests.web.conftest import Http, Web
 from tests.web.test_api import _receive
 

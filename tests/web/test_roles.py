@@ -14,7 +14,7 @@ from typing import Any
 import aiohttp
 import pytest
 
-from hub.web.api import ALARM_ACTIONS, OUTPUT_ACTIONS, RECORDER_ACTIONS
+from fleetdaq.hub.live.web.api import ALARM_ACTIONS, OUTPUT_ACTIONS, RECORDER_ACTIONS
 from tests.procs import wait_until
 from tests.web.conftest import Web
 
@@ -70,7 +70,7 @@ def test_the_session_says_the_role_so_the_page_can_disable_what_it_may_not_do(
 
 
 def test_a_role_changed_in_the_users_file_counts_at_the_next_click(make_web: MakeWeb):
-    from hub.web.users import read_users, write_users
+    from fleetdaq.hub.live.web.users import read_users, write_users
 
     web = make_web()
     vera = web.client()

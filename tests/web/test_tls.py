@@ -20,7 +20,7 @@ from cryptography.hazmat.primitives import serialization
 from prometheus_client.parser import text_string_to_metric_families
 
 from fleetdaq import pki
-from hub.errors import SecretError
+from fleetdaq.hub.errors import SecretError
 from tests.procs import REPO, free_port
 from tests.web.conftest import Web
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from argon2 import PasswordHasher
 
-from hub.web.users import User, read_user_lines, read_users
+from fleetdaq.hub.live.web.users import User, read_user_lines, read_users
 from tests.procs import REPO
 
 

@@ -1,2 +1,0 @@
-"""The Foxglove live view: the hub speaks the Foxglove WebSocket protocol (foxglove-sdk), so
-Foxglove and Lichtblick connect to it live (`hub.foxglove.service.FoxgloveLive`)."""
