@@ -177,7 +177,7 @@ def test_each_msg_file_follows_the_ros2_interface_rules(name: str):
 
 def test_the_interface_package_ships_in_the_wheel_as_package_data():
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())
-    data = cfg["tool"]["setuptools"]["package-data"]["edge"]
+    data = cfg["tool"]["setuptools"]["package-data"]["fleetdaq.contract"]
     assert {
         "fleetdaq_msgs/package.xml",
         "fleetdaq_msgs/CMakeLists.txt",
