@@ -8,9 +8,9 @@ batch carries on the wire.
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
-from collections.abc import Mapping
 from typing import Final, TypeVar
 
 from fleetdaq.ptp.quality import ClockQuality, ClockState

@@ -16,7 +16,7 @@ from fleetdaq import __version__
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.recording import Recording, StreamInfo
 from fleetdaq.analysis.stream import Gap
-from fleetdaq.analysis.window import format_ns
+from fleetdaq.analysis.window import TimeLike, format_ns
 
 FORMATS = ("parquet", "hdf5", "csv", "netcdf")
 METADATA_DIR = "_fleetdaq"
@@ -110,8 +110,8 @@ def plan_export(
     *,
     streams: Sequence[str] = (),
     channels: Sequence[str] = (),
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
 ) -> ExportPlan:
     """Check the request before writing anything.
 

@@ -12,7 +12,9 @@ import zenoh
 from fleetdaq.runtime.security import TlsFiles
 
 
-def client_config(endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | None = None) -> zenoh.Config:
+def client_config(
+    endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | None = None
+) -> zenoh.Config:
     """A client session that connects to the hub's router(s) and never scouts.
 
     `timeout_ms` bounds how long opening waits for a router (-1: forever). Once open, the
