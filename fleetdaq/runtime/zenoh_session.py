@@ -6,10 +6,25 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from typing import Protocol, cast
 
 import zenoh
 
 from fleetdaq.runtime.security import TlsFiles
+
+
+class Declared(Protocol):
+    """What a session declared and must undeclare: a publisher, subscriber, queryable or
+    liveliness token (zenoh's stubs leave `undeclare` unannotated; through this it is typed)."""
+
+    def undeclare(self) -> None: ...
+
+
+def has_subscribers(pub: zenoh.Publisher) -> bool:
+    """Whether any subscriber matches `pub`'s key now."""
+    # zenoh's stub (1.x) calls `matching_status` a bool; it is a `MatchingStatus`.
+    status = cast(zenoh.MatchingStatus, pub.matching_status)
+    return bool(status.matching)
 
 
 def client_config(
