@@ -221,7 +221,7 @@ class LabJackT8:
                 self._stop_stream()
         self.dev.close()
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> dict[str, object]:
         return {
             "device_scan_backlog": self.device_scan_backlog,
             "ljm_scan_backlog": self.ljm_scan_backlog,

@@ -165,5 +165,5 @@ class LabJackT8Poll:
         self._closing.set()
         self.dev.close()
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> dict[str, object]:
         return {"late_polls": self.pacer.late, "reconnects": self.reconnects}

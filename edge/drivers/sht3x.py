@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -185,5 +185,5 @@ class Sht3x(PolledDriver):
         if bus is not None:
             bus.close()
 
-    def extra_health(self) -> dict[str, Any]:
+    def extra_health(self) -> dict[str, object]:
         return {"retries": self.retries, "crc_errors": self.crc_errors, "nacks": self.nacks}
