@@ -334,7 +334,8 @@ class EdgeAgent:
 
     def _health(self) -> None:
         events, pub = self.events, self._health_pub
-        assert events is not None and pub is not None  # started once connected
+        assert events is not None
+        assert pub is not None  # this thread starts once connected
         while not self._stop.wait(1.0):
             try:
                 pub.put(encode(self.health()))

@@ -29,6 +29,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from fleetdaq.edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
+from fleetdaq.edge.drivers.i2cbus import I2cMessage
 from fleetdaq.edge.drivers.mcp4725 import WRITE_DAC, WRITE_DAC_EEPROM, Mcp4725Output, Mcp4725Sim
 from fleetdaq.edge.drivers.pacing import TimeSource
 from fleetdaq.edge.drivers.pcf8574 import POWER_ON_PORT, Pcf8574Output, Pcf8574Sim
@@ -41,7 +42,6 @@ from fleetdaq.edge.drivers.sht3x import (
     Sht3xStream,
     encode_sht3x,
 )
-from fleetdaq.edge.drivers.i2cbus import I2cMessage
 from fleetdaq.edge.drivers.simfaults import Fault, FaultSchedule
 
 
