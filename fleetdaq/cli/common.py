@@ -213,10 +213,11 @@ def _warn_if_ending(tls: TlsFiles, site: SiteConfig) -> None:
     """One line on stderr when the operator's certificate ends within the days the hub warns
     of its own (certificate_expiring): the command still runs, and nobody is locked out at
     3 a.m. by a date they were never told of."""
+    from fleetdaq.certificate_check import CertificateState
     from fleetdaq.runtime.certificate_dates import warn_days
 
     mine = _judge_pair(tls, warn_days(site))[0]
-    if mine.state == "expiring":
+    if mine.state is CertificateState.EXPIRING:
         click.echo(f"note: your certificate {tls.cert} {mine.message}", err=True)
 
 
