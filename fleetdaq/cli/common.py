@@ -27,6 +27,10 @@ if TYPE_CHECKING:
 
 F = TypeVar("F", bound=Callable[..., object])
 
+HubAnswer = dict[str, Any]
+"""A hub's JSON answer as a command reads it: its values unchecked, read under
+`reads_hub_answer` (a field missing or of another type is one line and exit 2)."""
+
 
 def fail(message: str, code: int = 2) -> NoReturn:
     """Print one line to stderr and exit (2: bad input, 1: it did not work)."""
@@ -255,12 +259,10 @@ def hub_request(
     body: Mapping[str, object] | None,
     timeout: float = 10.0,
     partition: str | None = None,
-) -> dict[str, Any]:
+) -> HubAnswer:
     """Ask the hub's ``fleetdaq/<site>/hub/<what>`` (a JSON request, a JSON reply); one line and
     exit 2 when no hub answers. With `partition`, through that partition hub's router.
-
-    The reply's values are `Any`: a command reads them under `reads_hub_answer`, which turns a
-    field missing or of another type into one line (`ask_hub` gives them as `object`)."""
+    (`ask_hub` gives the values as `object`, for a command that narrows them itself.)"""
     try:
         return ask_hub(config, connect, what, body, timeout, partition)
     except NoAnswer as err:
