@@ -10,7 +10,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from fleetdaq import __version__
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
@@ -65,7 +65,7 @@ class StreamExport:
     first_ns: int | None = None
     last_ns: int | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {
             "node": self.info.node,
             "stream": self.info.stream,
@@ -155,7 +155,23 @@ def plan_export(
     return ExportPlan(recording, fmt, out, chosen, a, b)
 
 
-def summary_of(plan: ExportPlan, exports: list[StreamExport]) -> dict[str, Any]:
+class ExportWindow(TypedDict):
+    start: str | None
+    end: str | None
+
+
+class ExportSummary(TypedDict):
+    """An export's ``summary.json`` (and the attributes of an HDF5 export)."""
+
+    exported_by: str
+    exported_at: str
+    format: str
+    window: ExportWindow
+    sessions: list[dict[str, object]]
+    streams: dict[str, dict[str, object]]
+
+
+def summary_of(plan: ExportPlan, exports: list[StreamExport]) -> ExportSummary:
     return {
         "exported_by": f"fleetdaq {__version__}",
         "exported_at": dt.datetime.now(dt.UTC).isoformat(),
