@@ -27,7 +27,7 @@ from fleetdaq.contract.cdr import decode, encode
 from fleetdaq.contract.config.node import NodeConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import Kind, SiteKeys
-from fleetdaq.contract.messages import HubHeartbeat, OutputCommand, OutputState
+from fleetdaq.contract.messages import HubHeartbeat, OutputCommand, OutputState, RefusalReason
 from fleetdaq.contract.schema import NAME
 from fleetdaq.edge.command_check import Refusal
 from fleetdaq.edge.dead_man import HubWatch
@@ -226,7 +226,7 @@ class OutputService:
 
     def _reply_now(self, query: zenoh.Query, output: str, why: str) -> None:
         cmd = _try_decode(query.payload.to_bytes() if query.payload is not None else b"")
-        reply = self.desk.reply(cmd, output, Refusal("not_allowed", why))
+        reply = self.desk.reply(cmd, output, Refusal(RefusalReason.NOT_ALLOWED, why))
         self._send(query, output, encode(reply))
 
     def _send(self, query: zenoh.Query, output: str, payload: bytes) -> None:
@@ -298,7 +298,7 @@ class OutputService:
             self.events.emit(
                 logging.ERROR, "outputs", "output_error", f"command on {job.output}: {err!r}"
             )
-            why = Refusal("not_allowed", f"the edge failed on this command: {err!r}")
+            why = Refusal(RefusalReason.NOT_ALLOWED, f"the edge failed on this command: {err!r}")
             payload = encode(self.desk.reply(_try_decode(job.payload), job.output, why))
         self._send(job.query, job.output, payload)
 
