@@ -352,8 +352,9 @@ class T8Outputs:
         """`fn(handle, *args)` (`fn` an LJM function taking the handle first), reopening once
         if the handle went stale."""
         with self.lock:
+            handle = self._handle()
             try:
-                return self.dev.call(fn, self._handle(), *args, **kwargs)
+                return self.dev.call(fn, handle, *args, **kwargs)
             except DeviceError as err:
                 if err.code not in self._stale:
                     raise
