@@ -390,6 +390,13 @@ class OutputAction(StrEnum):
     READ = "read"
 
 
+class CommandSender(StrEnum):
+    """Who sent an `OutputCommand`: a person, or one of the hub's rules."""
+
+    OPERATOR = "operator"
+    RULE = "rule"
+
+
 REFUSALS: Final = tuple(RefusalReason)
 """Every `RefusalReason`, in that order."""
 ACTIONS: Final = tuple(OutputAction)
@@ -413,7 +420,7 @@ class OutputCommand:
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
             raise ValueError(f"unknown action {self.action!r}")
-        if self.sender not in ("operator", "rule"):
+        if self.sender not in tuple(CommandSender):
             raise ValueError(f"unknown sender {self.sender!r}")
         if not self.command_id or len(self.command_id) > 128:
             raise ValueError("a command id is 1 to 128 characters")
