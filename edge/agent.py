@@ -22,7 +22,6 @@ import threading
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 
 import zenoh
 
@@ -48,7 +47,7 @@ from fleetdaq.runtime.paths import default_spool_dir
 from fleetdaq.runtime.security import SecretFileError, TlsFiles, node_tls, read_certificate
 from fleetdaq.runtime.systemd import Systemd
 from fleetdaq.runtime.threads import NamedThread
-from fleetdaq.runtime.zenoh_session import client_config
+from fleetdaq.runtime.zenoh_session import Declared, client_config
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -85,11 +84,11 @@ class EdgeAgent:
             spool_dir or (Path(configured) if configured else default_spool_dir())
         ) / node
         self.keys = SiteKeys(site.site)
-        self._session: Any = None
+        self._session: zenoh.Session | None = None
         self.events: EventPublisher | None = None
-        self._ack_sub: Any = None
-        self._health_pub: Any = None
-        self._token: Any = None
+        self._ack_sub: zenoh.Subscriber[None] | None = None
+        self._health_pub: zenoh.Publisher | None = None
+        self._token: zenoh.LivelinessToken | None = None
         self.loops: list[StreamLoop] = []
         self.displays: list[DisplayLoop] = []
         self.shared = SharedDevices()
@@ -214,7 +213,7 @@ class EdgeAgent:
         node = self.node
         by_stream = {loop.name: loop for loop in self.loops}
 
-        def on_ack(sample: Any) -> None:
+        def on_ack(sample: zenoh.Sample) -> None:
             key = self.keys.parse(str(sample.key_expr))
             mark = decode_mark(sample.payload.to_bytes())
             if key is not None and key.name == EVENTS_STREAM and mark is not None:
@@ -247,7 +246,7 @@ class EdgeAgent:
             try:
                 # A short first attempt: the streams wait for it before they start.
                 timeout_ms = 2000 if warned else 500
-                session: Any = zenoh.open(
+                session = zenoh.open(
                     client_config(self.endpoints, timeout_ms=timeout_ms, tls=self.tls)
                 )
             except zenoh.ZError as err:
@@ -336,6 +335,7 @@ class EdgeAgent:
     def _health(self) -> None:
         events, pub = self.events, self._health_pub
         assert events is not None
+        assert pub is not None  # this thread starts once connected
         while not self._stop.wait(1.0):
             try:
                 pub.put(encode(self.health()))
@@ -379,7 +379,12 @@ class EdgeAgent:
                 self.events.close()
         finally:
             with self._session_lock:
-                for entity in (self._ack_sub, self._health_pub, self._token):
+                entities: tuple[Declared | None, ...] = (
+                    self._ack_sub,
+                    self._health_pub,
+                    self._token,
+                )
+                for entity in entities:
                     if entity is not None:
                         entity.undeclare()
                 if self._session is not None:

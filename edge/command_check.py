@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from fleetdaq.contract.messages import OutputCommand
+from fleetdaq.contract.messages import OutputAction, OutputCommand, RefusalReason
 from fleetdaq.contract.schema import OutputBase
 
 MAX_PULSE_S = 3600.0
@@ -33,8 +33,7 @@ MAX_PULSE_S = 3600.0
 
 @dataclass(frozen=True, slots=True)
 class Refusal:
-    reason: str
-    """One of `fleetdaq.contract.messages.REFUSALS`."""
+    reason: RefusalReason
     message: str
 
 
@@ -72,12 +71,12 @@ def check_command(
     """Why `cmd` must be refused (None: apply it). `now_ns` is CLOCK_REALTIME, `now_s` the
     monotonic clock in seconds."""
     cfg = out.cfg
-    moves = cmd.action in ("set", "pulse")
+    moves = cmd.action in (OutputAction.SET, OutputAction.PULSE)
     shape = _malformed(cmd, cfg) if moves else None
     if shape is None and not (math.isfinite(cmd.max_age_s) and cmd.max_age_s >= 0):
         shape = f"max_age_s must be a number >= 0 (got {cmd.max_age_s!r})"
     if shape is not None:
-        return Refusal("not_allowed", shape)
+        return Refusal(RefusalReason.NOT_ALLOWED, shape)
     max_age = age_limit_s(cmd, node.max_command_age_s)
     age = (now_ns - cmd.issued_ns) / 1e9
     note = (
@@ -87,31 +86,31 @@ def check_command(
     )
     if age > max_age:
         return Refusal(
-            "too_old",
+            RefusalReason.TOO_OLD,
             f"issued {age:.3f} s ago by this edge's clock, older than {max_age:g} s{note}",
         )
     if age < -max_age:
         return Refusal(
-            "too_old",
+            RefusalReason.TOO_OLD,
             f"issued {-age:.3f} s in the future by this edge's clock (limit {max_age:g} s{note}): "
             "the hub's clock and this edge's disagree",
         )
-    if cmd.action in ("read", "disarm"):
+    if cmd.action in (OutputAction.READ, OutputAction.DISARM):
         return None
     if node.safe_state:
-        return Refusal("safe_state", f"safe state: {node.safe_reason}")
-    if cmd.action == "arm":
+        return Refusal(RefusalReason.SAFE_STATE, f"safe state: {node.safe_reason}")
+    if cmd.action == OutputAction.ARM:
         return None
     if out.interlocks:
         names = ", ".join(out.interlocks)
-        return Refusal("interlock", f"interlock {names} active")
+        return Refusal(RefusalReason.INTERLOCK, f"interlock {names} active")
     if not out.armed:
-        return Refusal("not_armed", f"{cmd.output} is not armed (arm it first)")
+        return Refusal(RefusalReason.NOT_ARMED, f"{cmd.output} is not armed (arm it first)")
     value = cmd.value
     if not cfg.low <= value <= cfg.high:
         unit = f" {cfg.unit}" if cfg.unit else ""
         return Refusal(
-            "out_of_limits",
+            RefusalReason.OUT_OF_LIMITS,
             f"{value:g}{unit} is outside the limits {cfg.low:g}..{cfg.high:g}{unit}",
         )
     return _rate(cmd, out, now_s)
@@ -122,7 +121,7 @@ def _malformed(cmd: OutputCommand, cfg: OutputBase) -> str | None:
         return f"the value must be a finite number (got {cmd.value!r})"
     if cfg.kind == "digital" and cmd.value not in (0.0, 1.0):
         return f"{cmd.output} is digital: 0 or 1 (got {cmd.value:g})"
-    if cmd.action == "pulse" and not (
+    if cmd.action == OutputAction.PULSE and not (
         math.isfinite(cmd.pulse_s) and 0 < cmd.pulse_s <= MAX_PULSE_S
     ):
         return f"pulse_s must be above 0 and at most {MAX_PULSE_S:g} s (got {cmd.pulse_s!r})"
@@ -139,13 +138,13 @@ def _rate(cmd: OutputCommand, out: OutputView, now_s: float) -> Refusal | None:
     if step > rate * since + 1e-9:
         wait = step / rate - since
         return Refusal(
-            "too_fast",
+            RefusalReason.TOO_FAST,
             f"a change of {step:g}{unit} {since:.3f} s after the last one exceeds max_rate "
             f"{rate:g}{unit}/s (wait {wait:.3f} s, or step less)",
         )
-    if cmd.action == "pulse" and step > rate * cmd.pulse_s + 1e-9:
+    if cmd.action == OutputAction.PULSE and step > rate * cmd.pulse_s + 1e-9:
         return Refusal(
-            "too_fast",
+            RefusalReason.TOO_FAST,
             f"the pulse would return {step:g}{unit} after {cmd.pulse_s:g} s, faster than "
             f"max_rate {rate:g}{unit}/s",
         )

@@ -18,11 +18,20 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from enum import StrEnum
 
 from fleetdaq.contract.cdr import decode
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.messages import HubHeartbeat
 from fleetdaq.runtime.threads import NamedThread
+
+
+class HubState(StrEnum):
+    """Whether the hub's heartbeat is heard (see the module's docstring)."""
+
+    WAITING = "waiting"
+    PRESENT = "present"
+    LOST = "lost"
 
 
 class HubWatch:
@@ -42,7 +51,7 @@ class HubWatch:
         self._monotonic = monotonic
         self._every = check_every_s
         self._lock = threading.Lock()
-        self.state = "waiting"
+        self.state = HubState.WAITING
         self.last_beat_s: float | None = None
         self.beats = 0
         self.junk = 0
@@ -70,25 +79,25 @@ class HubWatch:
             self.beats += 1
             self.last = beat
             self.last_beat_s = self._monotonic()
-            if self.state != "present":
-                self.state = "present"
+            if self.state is not HubState.PRESENT:
+                self.state = HubState.PRESENT
                 self._on_back(beat)
         return True
 
     def check(self) -> None:
         """Go to `lost` (calling on_lost) if the last heartbeat is `safe_after_s` old."""
         with self._lock:
-            if self.state != "present" or self.last_beat_s is None:
+            if self.state is not HubState.PRESENT or self.last_beat_s is None:
                 return
             missing = self._monotonic() - self.last_beat_s
             if missing < self.safe_after_s:
                 return
-            self.state = "lost"
+            self.state = HubState.LOST
             self._on_lost(missing)
 
     @property
     def hub_present(self) -> bool:
-        return self.state == "present"
+        return self.state is HubState.PRESENT
 
     def _run(self) -> None:
         while not self._stop.wait(self._every):

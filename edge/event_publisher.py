@@ -19,7 +19,6 @@ import logging
 import threading
 import time
 from collections import deque
-from typing import Any
 
 import zenoh
 
@@ -28,6 +27,7 @@ from fleetdaq.contract.messages import make_event
 from fleetdaq.contract.wire import encode_event_mark
 from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.runtime.threads import NamedThread
+from fleetdaq.runtime.zenoh_session import has_subscribers
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -48,7 +48,7 @@ class EventPublisher:
 
     def __init__(
         self,
-        session: Any | None,
+        session: zenoh.Session | None,
         key: str,
         node: str,
         backlog: int = 1000,
@@ -56,7 +56,7 @@ class EventPublisher:
         replay_after_s: float = 3.0,
     ) -> None:
         self._key = key
-        self._pub: Any = None
+        self._pub: zenoh.Publisher | None = None
         self._node = node
         self._pending: deque[bytes] = deque()
         self._backlog = backlog
@@ -72,7 +72,7 @@ class EventPublisher:
         if session is not None:
             self.attach(session)
 
-    def attach(self, session: Any) -> None:
+    def attach(self, session: zenoh.Session) -> None:
         """Start publishing on `session` (events raised before are in the spool or the queue)."""
         self._pub = session.declare_publisher(
             self._key,
@@ -127,7 +127,7 @@ class EventPublisher:
     def _put(self, seq: int, payload: bytes) -> bool:
         """Publish one spooled event if the hub listens; False otherwise (it waits in the spool)."""
         pub, spool = self._pub, self.spool
-        if pub is None or spool is None or not pub.matching_status.matching:
+        if pub is None or spool is None or not has_subscribers(pub):
             return False
         pub.put(payload, attachment=encode_event_mark(seq, spool.floor, spool.epoch))
         return True
@@ -135,7 +135,7 @@ class EventPublisher:
     def flush(self) -> None:
         """Publish what waits in the memory queue, if the hub listens (the spool replays)."""
         pub = self._pub
-        if self.spool is not None or pub is None or not pub.matching_status.matching:
+        if self.spool is not None or pub is None or not has_subscribers(pub):
             return
         with self._lock:
             pending, self._pending = self._pending, deque()
@@ -177,7 +177,7 @@ class EventPublisher:
 
     def _hub_listens(self) -> bool:
         pub = self._pub
-        return pub is not None and bool(pub.matching_status.matching)
+        return pub is not None and has_subscribers(pub)
 
     def _replay(self) -> None:
         listened, last_pass = False, 0.0

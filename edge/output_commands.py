@@ -27,7 +27,7 @@ from typing import Protocol
 
 from fleetdaq.contract.cdr import decode, encode
 from fleetdaq.contract.errors import DriverError, WireError
-from fleetdaq.contract.messages import OutputCommand, OutputReply
+from fleetdaq.contract.messages import OutputAction, OutputCommand, OutputReply, RefusalReason
 from fleetdaq.contract.requester_text import text_problem
 from fleetdaq.edge.command_check import NodeView, Refusal, age_limit_s, check_command
 from fleetdaq.edge.drivers.pacing import TimeSource
@@ -94,10 +94,10 @@ class CommandDesk:
         except WireError as err:
             self.malformed += 1
             self._report_malformed(output, str(err))
-            return encode(self.reply(None, output, Refusal("not_allowed", f"{err}")))
+            return encode(self.reply(None, output, Refusal(RefusalReason.NOT_ALLOWED, f"{err}")))
         if cmd.output != output:
             elsewhere = Refusal(
-                "not_allowed",
+                RefusalReason.NOT_ALLOWED,
                 f"the command names output {cmd.output!r} but came on the key of {output!r}",
             )
             return self._finish(cmd, output, elsewhere, remember=False)
@@ -107,7 +107,7 @@ class CommandDesk:
                 # Not echoed anywhere: the text is what could not be recorded.
                 self.malformed += 1
                 self._report_malformed(output, f"{field} {why}")
-                bad = Refusal("not_allowed", f"{field} {why}")
+                bad = Refusal(RefusalReason.NOT_ALLOWED, f"{field} {why}")
                 answered = cmd if field != "command_id" else None
                 return encode(self.reply(answered, output, bad))
         now_ns = self.clock.time_ns()
@@ -117,13 +117,14 @@ class CommandDesk:
             if _same(seen.command, cmd):
                 return self._replay(cmd, seen, now_ns)
             reused = Refusal(
-                "not_allowed", f"command id {cmd.command_id!r} was used for another command"
+                RefusalReason.NOT_ALLOWED,
+                f"command id {cmd.command_id!r} was used for another command",
             )
             return self._finish(cmd, output, reused, remember=False)
-        if len(self._replies) >= self.memory and cmd.action != "read":
+        if len(self._replies) >= self.memory and cmd.action != OutputAction.READ:
             soonest = min(seen.until_ns for seen in self._replies.values())
             busy = Refusal(
-                "not_allowed",
+                RefusalReason.NOT_ALLOWED,
                 f"busy: {len(self._replies)} commands young enough to be replayed are "
                 "remembered, the most this edge keeps (a replay could not be told from a new "
                 f"command); try again in {max(0.0, (soonest - now_ns) / 1e9):.1f} s",
@@ -133,7 +134,8 @@ class CommandDesk:
         if ch is None:
             known = ", ".join(self.channels) or "none"
             unknown = Refusal(
-                "unknown_output", f"no output {cmd.output!r} on {self.node} (outputs: {known})"
+                RefusalReason.UNKNOWN_OUTPUT,
+                f"no output {cmd.output!r} on {self.node} (outputs: {known})",
             )
             return self._finish(cmd, output, unknown)
         node = NodeView(self.state.safe_state, self.state.safe_reason, self.max_command_age_s)
@@ -190,24 +192,24 @@ class CommandDesk:
         """Do what an allowed command says; a device's refusal is the reply."""
         action = cmd.action
         try:
-            if action == "read":
+            if action == OutputAction.READ:
                 ch.read_back()
                 if ch.cfg.readback == "device" and ch.fault:
-                    return Refusal("device_error", ch.fault)
-            elif action == "arm":
+                    return Refusal(RefusalReason.DEVICE_ERROR, ch.fault)
+            elif action == OutputAction.ARM:
                 ch.armed = True
-            elif action == "disarm":
+            elif action == OutputAction.DISARM:
                 ch.armed = False
-            elif action == "set":
+            elif action == OutputAction.SET:
                 ch.pulse = None
                 ch.write(cmd.value)
-            elif action == "pulse":
+            elif action == OutputAction.PULSE:
                 back_to = ch.pulse.back_to if ch.pulse is not None else ch.value
                 ch.pulse = None
                 ch.write(cmd.value)
                 ch.pulse = Pulse(ch.now_s() + cmd.pulse_s, back_to, cmd.command_id)
         except DriverError as err:
-            return Refusal("device_error", str(err))
+            return Refusal(RefusalReason.DEVICE_ERROR, str(err))
         return None
 
     def _finish(
@@ -215,12 +217,12 @@ class CommandDesk:
     ) -> bytes:
         reply = self.reply(cmd, output, refusal)
         payload = encode(reply)
-        if remember and cmd.action != "read":
+        if remember and cmd.action != OutputAction.READ:
             until = cmd.issued_ns + int(age_limit_s(cmd, self.max_command_age_s) * 1e9)
             self._replies[cmd.command_id] = _Answered(cmd, reply, until)
         applied = refusal is None
         level = logging.INFO if applied else logging.WARNING
-        if cmd.action == "read":
+        if cmd.action == OutputAction.READ:
             level = logging.DEBUG
         what = f"applied, reads back {reply.readback:g}" if applied else f"refused: {reply.refusal}"
         self.events.emit(

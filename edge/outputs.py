@@ -21,13 +21,13 @@ import re
 import threading
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from fleetdaq.contract.cdr import decode, encode
 from fleetdaq.contract.config.node import NodeConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import Kind, SiteKeys
-from fleetdaq.contract.messages import HubHeartbeat, OutputCommand, OutputState
+from fleetdaq.contract.messages import HubHeartbeat, OutputCommand, OutputState, RefusalReason
 from fleetdaq.contract.schema import NAME
 from fleetdaq.edge.command_check import Refusal
 from fleetdaq.edge.dead_man import HubWatch
@@ -41,6 +41,9 @@ from fleetdaq.edge.output_commands import CommandDesk
 from fleetdaq.edge.output_upkeep import Upkeep
 from fleetdaq.runtime.threads import NamedThread
 
+if TYPE_CHECKING:
+    import zenoh
+
 log = logging.getLogger("fleetdaq.edge")
 
 QUEUE_LIMIT = 64
@@ -52,7 +55,7 @@ _STOP = object()
 
 @dataclass(frozen=True, slots=True)
 class _Query:
-    query: Any
+    query: zenoh.Query
     output: str
     payload: bytes
 
@@ -118,8 +121,8 @@ class OutputService:
             self,
             command_age_limit_s or self.control.max_command_age_s,
         )
-        self._queryable: Any = None
-        self._beat_sub: Any = None
+        self._queryable: zenoh.Queryable[None] | None = None
+        self._beat_sub: zenoh.Subscriber[None] | None = None
         self._worker = NamedThread(target=self._run, name="outputs", daemon=True)
         self._closing = False
         self.started = threading.Event()
@@ -132,7 +135,7 @@ class OutputService:
         self._worker.start()
         self.hub.start()
 
-    def attach(self, session: Any) -> None:
+    def attach(self, session: zenoh.Session) -> None:
         """Answer commands and hear the hub's heartbeat on `session`."""
         self._beat_sub = session.declare_subscriber(self.keys.hub("heartbeat"), self._on_beat)
         self._queryable = session.declare_queryable(self.keys.outs_of(self.node), self._on_query)
@@ -142,9 +145,10 @@ class OutputService:
         if self._closing:
             return
         self._closing = True
-        for entity in (self._queryable, self._beat_sub):
-            if entity is not None:
-                entity.undeclare()
+        if self._queryable is not None:
+            self._queryable.undeclare()
+        if self._beat_sub is not None:
+            self._beat_sub.undeclare()
         self._queryable = self._beat_sub = None
         self.hub.close()
         with self._cond:
@@ -167,7 +171,7 @@ class OutputService:
 
     # -- Zenoh callbacks (never block, never raise) --------------------------------------------
 
-    def _on_beat(self, sample: Any) -> None:
+    def _on_beat(self, sample: zenoh.Sample) -> None:
         try:
             if self.hub.heard(sample.payload.to_bytes()):
                 return
@@ -185,7 +189,7 @@ class OutputService:
         except Exception:  # a callback must never die; count and go on
             log.exception("hub heartbeat")
 
-    def _on_query(self, query: Any) -> None:
+    def _on_query(self, query: zenoh.Query) -> None:
         try:
             self._take(query)
         except Exception:
@@ -193,7 +197,7 @@ class OutputService:
             self.counts["stray"] += 1
             query.drop()
 
-    def _take(self, query: Any) -> None:
+    def _take(self, query: zenoh.Query) -> None:
         self.counts["queries"] += 1
         key = self.keys.parse(str(query.key_expr))
         if key is None or key.kind is not Kind.OUT or key.node != self.node:
@@ -220,12 +224,12 @@ class OutputService:
             self.counts["busy"] += 1
             self._reply_now(query, key.name, f"busy: {QUEUE_LIMIT} commands are waiting")
 
-    def _reply_now(self, query: Any, output: str, why: str) -> None:
+    def _reply_now(self, query: zenoh.Query, output: str, why: str) -> None:
         cmd = _try_decode(query.payload.to_bytes() if query.payload is not None else b"")
-        reply = self.desk.reply(cmd, output, Refusal("not_allowed", why))
+        reply = self.desk.reply(cmd, output, Refusal(RefusalReason.NOT_ALLOWED, why))
         self._send(query, output, encode(reply))
 
-    def _send(self, query: Any, output: str, payload: bytes) -> None:
+    def _send(self, query: zenoh.Query, output: str, payload: bytes) -> None:
         try:
             query.reply(self.keys.out(self.node, output), payload)
         except Exception as err:  # the asker went away
@@ -294,7 +298,7 @@ class OutputService:
             self.events.emit(
                 logging.ERROR, "outputs", "output_error", f"command on {job.output}: {err!r}"
             )
-            why = Refusal("not_allowed", f"the edge failed on this command: {err!r}")
+            why = Refusal(RefusalReason.NOT_ALLOWED, f"the edge failed on this command: {err!r}")
             payload = encode(self.desk.reply(_try_decode(job.payload), job.output, why))
         self._send(job.query, job.output, payload)
 

@@ -13,7 +13,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +30,7 @@ from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor
 from fleetdaq.runtime.systemd import Beat
 from fleetdaq.runtime.threads import NamedThread
+from fleetdaq.runtime.zenoh_session import has_subscribers
 
 log = logging.getLogger("fleetdaq.edge")
 
@@ -64,7 +64,7 @@ class StreamLoop:
         node: str,
         name: str,
         cfg: StreamConfig,
-        session: Any,
+        session: zenoh.Session | None,
         events: EventPublisher,
         spool: StreamSpool,
         spool_cfg: SpoolConfig,
@@ -96,8 +96,8 @@ class StreamLoop:
         self.counters = StreamCounters(next_sequence=spool.next_sequence)
         self.time_sync: TimeSyncMonitor = NoTimeSyncMonitor()
         self._key = SiteKeys(site).data(node, name)
-        self._pub: Any = None
-        self._replay_pub: Any = None
+        self._pub: zenoh.Publisher | None = None
+        self._replay_pub: zenoh.Publisher | None = None
         if session is not None:
             self.attach(session)
         self.subscriber_timeout_s = 3.0
@@ -126,7 +126,7 @@ class StreamLoop:
             f"sequence numbers continue at {self.counters.next_sequence}",
         )
 
-    def attach(self, session: Any) -> None:
+    def attach(self, session: zenoh.Session) -> None:
         """Publish on `session` from now on. Until then batches only go to the spool."""
         # Live batches never block the acquisition thread: under congestion Zenoh drops the
         # put, and the batch, already in the spool, is replayed once the hub has not acked it.
@@ -146,7 +146,7 @@ class StreamLoop:
 
     def _hub_listens(self) -> bool:
         pub = self._pub
-        return pub is not None and bool(pub.matching_status.matching)
+        return pub is not None and has_subscribers(pub)
 
     def start(self) -> None:
         self._thread.start()
@@ -340,11 +340,10 @@ class StreamLoop:
             while (seq - self.spool.acked) * len(payload) > window:
                 if self._stop.wait(0.05) or not self._hub_listens():
                     break
-            if self._stop.is_set() or not self._hub_listens():
+            replay_pub = self._replay_pub  # set and cleared with `_pub` (`attach`)
+            if self._stop.is_set() or not self._hub_listens() or replay_pub is None:
                 break
-            self._replay_pub.put(
-                payload, attachment=encode_mark(self.spool.floor, self.spool.epoch)
-            )
+            replay_pub.put(payload, attachment=encode_mark(self.spool.floor, self.spool.epoch))
             sent += len(payload)
             batches += 1
             self.counters.replayed += 1

@@ -11,9 +11,10 @@ not read: they belong to the service's user, not to whoever checks.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, replace
+from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from fleetdaq.runtime.certificate_dates import (
     DAY_NS,
@@ -28,13 +29,28 @@ from fleetdaq.runtime.certificate_dates import (
 from fleetdaq.runtime.security import read_certificate
 
 if TYPE_CHECKING:
+    from cryptography import x509
+
     from fleetdaq.contract.config.site import SiteConfig
 
-STATES = ("ok", "not_permitted", "expiring", "expired", "not_yet_valid", "foreign", "unreadable")
+
+class CertificateState(StrEnum):
+    """A certificate's state as judged on one machine (its JSON value is the string)."""
+
+    OK = "ok"
+    NOT_PERMITTED = "not_permitted"
+    EXPIRING = "expiring"
+    EXPIRED = "expired"
+    NOT_YET_VALID = "not_yet_valid"
+    FOREIGN = "foreign"
+    UNREADABLE = "unreadable"
+
+
+STATES = tuple(CertificateState)
 """From fine to worst. ``not_permitted``: whoever checks may not read it (the PKI folder is the
 services' own, 0750), which says nothing of the host; the rest are something to fix."""
 
-GOOD = ("ok", "not_permitted")
+GOOD = (CertificateState.OK, CertificateState.NOT_PERMITTED)
 """States that are not the host's fault."""
 
 _ROTATE = f"rotate: {ROTATE}, re-issue every pair, copy them out, restart"
@@ -51,8 +67,7 @@ class Checked:
     which: str
     """``ca``, ``hub``, ``partition NAME`` or ``node NAME``."""
     path: str
-    state: str
-    """One of `STATES`."""
+    state: CertificateState
     cn: str = ""
     not_before_ns: int = 0
     not_after_ns: int = 0
@@ -63,7 +78,48 @@ class Checked:
     """What is wrong and how to fix it ("" when ok)."""
 
 
-def _load(path: Path) -> Any:
+class CheckedJson(TypedDict):
+    """A `Checked` in ``pki check --json`` (what `fleetdaq fleet status` reads back)."""
+
+    which: str
+    path: str
+    state: str
+    cn: str
+    not_before_ns: int
+    not_after_ns: int
+    days_left: float | None
+    fingerprint: str
+    message: str
+
+
+class CheckReport(TypedDict):
+    """What ``pki check --json`` prints; only `tls` when TLS is off."""
+
+    tls: bool
+    pki_dir: NotRequired[str]
+    warn_days: NotRequired[float]
+    now_ns: NotRequired[int]
+    first_not_after_ns: NotRequired[int]
+    certificates: NotRequired[list[CheckedJson]]
+    problems: NotRequired[list[str]]
+    unchecked: NotRequired[list[str]]
+
+
+def _json(c: Checked) -> CheckedJson:
+    return {
+        "which": c.which,
+        "path": c.path,
+        "state": c.state,
+        "cn": c.cn,
+        "not_before_ns": c.not_before_ns,
+        "not_after_ns": c.not_after_ns,
+        "days_left": c.days_left,
+        "fingerprint": c.fingerprint,
+        "message": c.message,
+    }
+
+
+def _load(path: Path) -> x509.Certificate | None:
     """The certificate at `path` (a cryptography x509.Certificate), or None."""
     from cryptography import x509
 
@@ -73,7 +129,7 @@ def _load(path: Path) -> Any:
         return None
 
 
-def _issued_by(cert: Any, ca_path: Path) -> bool | None:
+def _issued_by(cert: x509.Certificate | None, ca_path: Path) -> bool | None:
     """Whether the CA at `ca_path` signed `cert`; None when either cannot be read."""
     from cryptography.exceptions import InvalidSignature
 
@@ -99,7 +155,7 @@ def judge(
         return Checked(
             which,
             str(path),
-            "not_permitted",
+            CertificateState.NOT_PERMITTED,
             message=f"not checked: this user may not read it ({err.strerror}); run it as root "
             "or as a member of the services' group",
         )
@@ -108,13 +164,15 @@ def judge(
     c = read_certificate(path)
     if "error" in c:
         copy = "copy the site's ca.crt here" if ca is None else fix
-        return Checked(which, str(path), "unreadable", message=f"{c['error']} ({copy})")
+        return Checked(
+            which, str(path), CertificateState.UNREADABLE, message=f"{c['error']} ({copy})"
+        )
     days = round((c["not_after_ns"] - now_ns) / DAY_NS, 2)
     cert = _load(path)
     base = Checked(
         which,
         str(path),
-        "ok",
+        CertificateState.OK,
         cn=c["cn"],
         not_before_ns=c["not_before_ns"],
         not_after_ns=c["not_after_ns"],
@@ -123,24 +181,30 @@ def judge(
     )
     if ca is not None and _issued_by(cert, ca) is False:
         state, message = (
-            "foreign",
+            CertificateState.FOREIGN,
             f"not issued by the site CA {ca} beside it: the hub refuses it "
             f"(an old pair from before a rotation, or another site's; {fix})",
         )
     elif now_ns < base.not_before_ns:
         state, message = (
-            "not_yet_valid",
+            CertificateState.NOT_YET_VALID,
             f"starts on {utc_text(base.not_before_ns)}, and this machine's clock says "
             f"{utc_text(now_ns)}: TLS refuses it until the clock is set (PTP or NTP; a Pi without "
             "a real-time clock boots with an old date)",
         )
     elif days <= 0:
-        state, message = "expired", f"{when_it_ends(base.not_after_ns, now_ns)} ({fix})"
+        state, message = (
+            CertificateState.EXPIRED,
+            f"{when_it_ends(base.not_after_ns, now_ns)} ({fix})",
+        )
     elif days < days_before:
-        state, message = "expiring", f"{when_it_ends(base.not_after_ns, now_ns)} ({fix})"
+        state, message = (
+            CertificateState.EXPIRING,
+            f"{when_it_ends(base.not_after_ns, now_ns)} ({fix})",
+        )
     else:
         return base
-    return Checked(**{**asdict(base), "state": state, "message": message})
+    return replace(base, state=state, message=message)
 
 
 def _pairs(
@@ -172,7 +236,7 @@ def check(
     hub: bool = False,
     partitions: tuple[str, ...] = (),
     now_ns: int | None = None,
-) -> dict[str, Any]:
+) -> CheckReport:
     """What ``pki check --json`` prints. Without TLS: ``{"tls": false}``."""
     if not site.security.tls:
         return {"tls": False}
@@ -184,7 +248,11 @@ def check(
     pairs = _pairs(pki, nodes, hub, partitions)
     found += [judge(which, path, fix, ca, now_ns, days) for which, path, fix in pairs]
     problems = [f"{c.which} {c.path}: {c.message}" for c in found if c.state not in GOOD]
-    unchecked = [f"{c.which} {c.path}: {c.message}" for c in found if c.state == "not_permitted"]
+    unchecked = [
+        f"{c.which} {c.path}: {c.message}"
+        for c in found
+        if c.state is CertificateState.NOT_PERMITTED
+    ]
     if not pairs:
         problems.append(
             f"no certificate pair in {pki} (fleetdaq pki issue NODE; copy the pair here)"
@@ -196,7 +264,7 @@ def check(
         "warn_days": days,
         "now_ns": now_ns,
         "first_not_after_ns": min(ends) if all(ends) else 0,
-        "certificates": [asdict(c) for c in found],
+        "certificates": [_json(c) for c in found],
         "problems": problems,
         "unchecked": unchecked,
     }

@@ -31,7 +31,6 @@ import datetime as dt
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import yaml
 
@@ -64,7 +63,7 @@ class _Import:
     ignored: list[str] = field(default_factory=list)
 
 
-def _q(value: Any) -> str:
+def _q(value: object) -> str:
     """A YAML scalar or flow sequence, quoted where YAML needs it."""
     text = yaml.safe_dump(value, default_flow_style=True, width=1000, sort_keys=False)
     return text.strip().removesuffix("...").strip()
@@ -88,19 +87,26 @@ def _unique(name: str, taken: set[str]) -> str:
     return out
 
 
-def _list(params: dict[str, Any], key: str) -> list[Any]:
+def _list(params: dict[str, object], key: str) -> list[object]:
     value = params.get(key)
     return list(value) if isinstance(value, list) else []
 
 
-def _number(params: dict[str, Any], key: str, node: str, default: float) -> float:
+def _number(params: dict[str, object], key: str, node: str, default: float) -> float:
     value = params.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise NotModaqConfig(f"{node}.ros__parameters.{key}: expected a number, got {value!r}")
     return float(value)
 
 
-def _nodes(doc: Any, path: str) -> dict[str, dict[str, Any]]:
+def _float(value: object) -> float:
+    """`float(value)` for what YAML gives (a number, or text such as ``"1e-3"``)."""
+    if isinstance(value, str | int | float):
+        return float(value)
+    raise TypeError(f"float() argument must be a string or a real number, not {value!r}")
+
+
+def _nodes(doc: object, path: str) -> dict[str, dict[str, object]]:
     if not isinstance(doc, dict):
         raise NotModaqConfig(f"{path}: not a MODAQ 2 configuration (expected a mapping of nodes)")
     nodes = {
@@ -116,7 +122,7 @@ def _nodes(doc: Any, path: str) -> dict[str, dict[str, Any]]:
     return nodes
 
 
-def _kind(params: dict[str, Any]) -> str:
+def _kind(params: dict[str, object]) -> str:
     if "dataFolder" in params or "loggedTopics" in params or "fileDuration" in params:
         return "bag_recorder"
     if {"loggerPath", "loggerLimitBytes", "emailGroup1", "emailSendAddr"} & params.keys():
@@ -130,7 +136,7 @@ def _kind(params: dict[str, Any]) -> str:
     return "other"
 
 
-def _t8_stream(imp: _Import, node: str, p: dict[str, Any], taken: set[str]) -> None:
+def _t8_stream(imp: _Import, node: str, p: dict[str, object], taken: set[str]) -> None:
     topic = str(p.get("ainTopic", f"/{node}"))
     name = _unique(_stream_name(topic, node), taken)
     rate = _number(p, "SampleRate", node, 10000.0)
@@ -155,8 +161,8 @@ def _t8_stream(imp: _Import, node: str, p: dict[str, Any], taken: set[str]) -> N
     for i, raw in enumerate(names[:8]):
         ch = _unique(_name(raw, CHANNEL_NAME, f"AIN{i}"), seen)
         unit = str(units[i]) if i < len(units) else "V"
-        scale = float(scales[i]) if i < len(scales) else 1.0
-        offset = float(offsets[i]) if i < len(offsets) else 0.0
+        scale = _float(scales[i]) if i < len(scales) else 1.0
+        offset = _float(offsets[i]) if i < len(offsets) else 0.0
         entry = {"name": ch, "unit": unit, "ain": i, "range": T8_AIN_RANGE_V}
         entry |= {"scale": scale, "offset": offset}
         note = f"  # was {raw!r}" if ch != raw else ""
@@ -166,7 +172,7 @@ def _t8_stream(imp: _Import, node: str, p: dict[str, Any], taken: set[str]) -> N
     imp.streams.append(_Stream(name, lines, topic))
 
 
-def _t8_poll(imp: _Import, node: str, p: dict[str, Any], taken: set[str], din: bool) -> None:
+def _t8_poll(imp: _Import, node: str, p: dict[str, object], taken: set[str], din: bool) -> None:
     topic = str(p.get("dinTopic" if din else "ainTopic", f"/{node}"))
     name = _unique(_stream_name(topic, node), taken)
     period_ms = _number(p, "sampleRateMS", node, 1000.0)
@@ -204,7 +210,7 @@ def _stream_name(topic: str, node: str) -> str:
     return name if re.match(NAME, name) else _name(node, NAME, "s")
 
 
-def _bag_recorder(imp: _Import, node: str, p: dict[str, Any]) -> list[str]:
+def _bag_recorder(imp: _Import, node: str, p: dict[str, object]) -> list[str]:
     if "dataFolder" in p:
         imp.hub.append(
             f"data_dir: {_q(str(p['dataFolder']))}   # {node}.dataFolder (sessions go in"
@@ -213,7 +219,7 @@ def _bag_recorder(imp: _Import, node: str, p: dict[str, Any]) -> list[str]:
     return [str(t) for t in _list(p, "loggedTopics")]
 
 
-def _supervisor(imp: _Import, node: str, p: dict[str, Any]) -> None:
+def _supervisor(imp: _Import, node: str, p: dict[str, object]) -> None:
     notes = {
         "loggerPath": "the hub writes events to <data_dir>/events.log",
         "loggerLimitBytes": "no key: events.log is rotated at 10 MB, 5 kept",
@@ -237,7 +243,7 @@ def _supervisor(imp: _Import, node: str, p: dict[str, Any]) -> None:
     imp.hub += _notify(node, p)
 
 
-def _notify(node: str, p: dict[str, Any]) -> list[str]:
+def _notify(node: str, p: dict[str, object]) -> list[str]:
     """hub.notify from M2Supervisor's e-mail settings: its sender through Gmail (MODAQ 2's
     hard-coded server) with the password from the environment, and one group per e-mail group
     with the per-tag snooze. Addresses the site file would refuse are left in a comment."""

@@ -24,7 +24,7 @@ message (`UnknownStream`, `UnknownChannel`, `BadWindow`, `NoRecording`, `Damaged
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from fleetdaq.analysis.errors import (
     AnalysisError,
@@ -37,6 +37,7 @@ from fleetdaq.analysis.errors import (
 from fleetdaq.analysis.files import Source
 from fleetdaq.analysis.recording import Recording, SessionInfo, StreamInfo
 from fleetdaq.analysis.stream import BatchTable, Gap, StreamData
+from fleetdaq.analysis.window import TimeLike
 from fleetdaq.contract.messages import AlarmState, Event, NodeHealth
 
 if TYPE_CHECKING:
@@ -87,8 +88,8 @@ def read_stream(
     source: Source,
     stream: str,
     *,
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
     channels: Channels = None,
 ) -> StreamData:
     """One stream as numpy: `time_ns` (int64 UTC ns), `time` (datetime64[ns]), `data`
@@ -109,8 +110,8 @@ def read_dataframe(
     source: Source,
     stream: str,
     *,
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
     channels: Channels = None,
 ) -> pd.DataFrame:
     """`read_stream` as a pandas DataFrame: a UTC `DatetimeIndex` named ``time``, a column per
@@ -122,8 +123,8 @@ def read_dataset(
     source: Source,
     stream: str,
     *,
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
     channels: Channels = None,
 ) -> xr.Dataset:
     """`read_stream` as an xarray Dataset on a ``time`` coordinate, a variable per channel with
@@ -131,20 +132,26 @@ def read_dataset(
     return read_stream(source, stream, start=start, end=end, channels=channels).to_xarray()
 
 
-def read_events(source: Source, *, start: Any | None = None, end: Any | None = None) -> list[Event]:
+def read_events(
+    source: Source, *, start: TimeLike | None = None, end: TimeLike | None = None
+) -> list[Event]:
     """The recorded events (``/events``: time_ns, node, level, source, tag, message, fields)."""
     return Recording(source).events(start=start, end=end)
 
 
 def read_alarms(
-    source: Source, *, start: Any | None = None, end: Any | None = None
+    source: Source, *, start: TimeLike | None = None, end: TimeLike | None = None
 ) -> list[AlarmState]:
     """The recorded alarm transitions (``/alarms``)."""
     return Recording(source).alarms(start=start, end=end)
 
 
 def read_health(
-    source: Source, node: str | None = None, *, start: Any | None = None, end: Any | None = None
+    source: Source,
+    node: str | None = None,
+    *,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
 ) -> list[NodeHealth]:
     """The recorded node health (about 1 Hz per node; ``hub`` for the hub's own)."""
     return Recording(source).health(node, start=start, end=end)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 class PtpError(Exception):
-    """Anything the time-sync status code raises."""
+    """Every error the time-sync status code raises."""
 
 
 class ManagementError(PtpError):

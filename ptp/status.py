@@ -8,9 +8,10 @@ batch carries on the wire.
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
-from typing import Any, Final
+from typing import Final, TypeVar
 
 from fleetdaq.ptp.quality import ClockQuality, ClockState
 
@@ -98,7 +99,7 @@ class TimeStatus:
             source=self.source,
         )
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         """JSON-ready (node health, ``--json``)."""
         return {
             "source": self.source,
@@ -127,7 +128,7 @@ class TimeStatus:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TimeStatus:
+    def from_dict(cls, d: Mapping[str, object]) -> TimeStatus:
         """The inverse of `to_dict` (the hub reads node health with it). Raises ValueError /
         KeyError / TypeError on something that is not a status."""
 
@@ -143,15 +144,19 @@ class TimeStatus:
             v = d.get(key)
             return None if v is None else bool(v)
 
+        def opt_str(key: str) -> str | None:
+            v = d.get(key)
+            return v if v is None or isinstance(v, str) else str(v)
+
         checks = tuple(
             Check(str(c["name"]), Level[str(c["level"]).upper()], str(c["message"]))
-            for c in d.get("checks", [])
+            for c in _items(d.get("checks", []), dict)
         )
         return cls(
             source=str(d["source"]),
             state=SyncState(d["state"]),
             checks=checks,
-            time_ns=int(d["time_ns"]),
+            time_ns=_int(d["time_ns"]),
             offset_ns=opt_int("offset_ns"),
             mean_path_delay_ns=opt_int("mean_path_delay_ns"),
             grandmaster_id=str(d.get("grandmaster_id") or ""),
@@ -159,14 +164,14 @@ class TimeStatus:
             steps_removed=opt_int("steps_removed"),
             clock_identity=str(d.get("clock_identity") or ""),
             is_grandmaster=bool(d.get("is_grandmaster", False)),
-            port_state=d.get("port_state"),
+            port_state=opt_str("port_state"),
             last_sync_age_ns=opt_int("last_sync_age_ns"),
-            timestamping=d.get("timestamping"),
-            interface=d.get("interface"),
+            timestamping=opt_str("timestamping"),
+            interface=opt_str("interface"),
             interface_hardware=opt_bool("interface_hardware"),
             kernel_synchronised=opt_bool("kernel_synchronised"),
             kernel_maxerror_us=opt_int("kernel_maxerror_us"),
-            ignored=frozenset(str(x) for x in d.get("ignored", [])),
+            ignored=frozenset(str(x) for x in _items(d.get("ignored", []), object)),
         )
 
     def format_table(self) -> str:
@@ -256,3 +261,18 @@ def grandmaster_change_message(old: str, new: str, status: TimeStatus) -> str:
         f"grandmaster changed from {old or '-'} to {new or '-'} "
         f"(state {status.state.value}, offset {format_ns(status.offset_ns)})"
     )
+
+
+_T = TypeVar("_T")
+
+
+def _int(v: object) -> int:
+    if isinstance(v, int | float | str):
+        return int(v)
+    raise TypeError(f"{v!r} is not an integer")
+
+
+def _items(v: object, kind: type[_T]) -> list[_T]:
+    if not isinstance(v, list | tuple) or not all(isinstance(x, kind) for x in v):
+        raise TypeError(f"{v!r} is not a list of {kind.__name__}")
+    return list(v)

@@ -4,7 +4,7 @@ every output driver is (`OutputDriver`) and a device's hardware watchdog."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -61,7 +61,7 @@ class Driver(Protocol):
 class DriverHealth(Protocol):
     """Optional: a driver with this reports device health (backlogs, fault counts, ...)."""
 
-    def health(self) -> dict[str, Any]: ...
+    def health(self) -> dict[str, object]: ...
 
 
 class OutputDriver(Protocol):

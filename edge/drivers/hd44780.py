@@ -12,13 +12,13 @@ DDRAM rows start at 0x00, 0x40, 0x14, 0x54; set address = 0x80 | address.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
 from fleetdaq.contract.schema import Float, Int, Strict
 from fleetdaq.edge.display_text import parse_line
-from fleetdaq.edge.drivers.i2cbus import I2cFault
+from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault
 
 RS, E, BACKLIGHT = 0x01, 0x04, 0x08
 ROW_OFFSETS = (0x00, 0x40, 0x14, 0x54)
@@ -84,7 +84,7 @@ class Hd44780Pcf8574:
 
     def __init__(
         self,
-        bus: Any,
+        bus: I2cBus,
         address: int,
         cols: int = 16,
         rows: int = 2,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import errno
 import importlib
-from typing import Any, Literal
+from typing import Literal, Protocol, cast
 
 from fleetdaq.contract.errors import DeviceError, DeviceNotFound, DriverUnavailable
 from fleetdaq.contract.schema import SimFault
@@ -17,10 +17,57 @@ from fleetdaq.contract.schema import SimFault
 NACK_ERRNOS = {errno.EREMOTEIO, errno.EIO, errno.ENXIO}
 
 
-def load_smbus2(what: str) -> Any:
+class I2cMessage(Protocol):
+    """One message of a combined transfer (`smbus2.i2c_msg`); `bytes(msg)` is what was read."""
+
+    @property
+    def addr(self) -> int: ...
+
+    @property
+    def flags(self) -> int: ...
+
+    @property
+    def len(self) -> int: ...
+
+    def __bytes__(self) -> bytes: ...
+
+
+class I2cMessages(Protocol):
+    """What makes the messages (`smbus2.i2c_msg`'s static methods)."""
+
+    def read(self, address: int, length: int) -> I2cMessage: ...
+
+    def write(self, address: int, buf: bytes | list[int]) -> I2cMessage: ...
+
+
+class I2cBus(Protocol):
+    """An open bus (`smbus2.SMBus`): the calls drivers make."""
+
+    def i2c_rdwr(self, *i2c_msgs: I2cMessage) -> None: ...
+
+    def write_byte(self, i2c_addr: int, value: int, force: bool | None = None) -> None: ...
+
+    def read_byte(self, i2c_addr: int, force: bool | None = None) -> int: ...
+
+    def close(self) -> None: ...
+
+
+class Smbus2(Protocol):
+    """The `smbus2` module as drivers use it, or a stand-in (`sim_smbus.SimSmbus2`, a test's
+    fake): the transport an I2C driver's constructor takes."""
+
+    @property
+    def i2c_msg(self) -> I2cMessages: ...
+
+    def SMBus(self, bus: int | None = None, force: bool = False) -> I2cBus: ...
+
+
+def load_smbus2(what: str) -> Smbus2:
     """The smbus2 module, imported now; DriverUnavailable (one line) when it is missing."""
     try:
-        return importlib.import_module("smbus2")
+        # smbus2's own stubs do not fit its module (`i2c_msg.__iter__` -> int): the protocol
+        # says what fleetdaq calls.
+        return cast(Smbus2, importlib.import_module("smbus2"))
     except ImportError as err:
         raise DriverUnavailable(
             f"the {what} needs smbus2: `pip install fleetdaq[pi]` (and enable I2C: "
@@ -28,7 +75,7 @@ def load_smbus2(what: str) -> Any:
         ) from err
 
 
-def open_bus(smbus: Any, bus: int) -> Any:
+def open_bus(smbus: Smbus2, bus: int) -> I2cBus:
     """`smbus.SMBus(bus)` with typed errors keeping the errno."""
     path = f"/dev/i2c-{bus}"
     try:

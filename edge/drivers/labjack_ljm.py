@@ -14,7 +14,8 @@ import importlib
 import io
 import re
 import threading
-from typing import Annotated, Any, Literal
+from collections.abc import Callable, Sequence
+from typing import Annotated, Concatenate, Literal, ParamSpec, Protocol, TypeVar, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +37,71 @@ T8_RANGES = (11.0, 9.6, 4.8, 2.4, 1.2, 0.6, 0.3, 0.15, 0.075, 0.036, 0.018)
 """The T8's AIN#_RANGE values (± volts), T-Series datasheet 14.3.2 / A-3-3-3."""
 T8_MAX_SAMPLE_RATE = 400_000
 """T8 stream: samples per second over the whole scan list (datasheet 14.3.2, A-1)."""
+
+
+class LjmErrorCodes(Protocol):
+    """``labjack.ljm.errorcodes``: the codes the drivers test for (all are read by name)."""
+
+    INVALID_HANDLE: int
+    DEVICE_NOT_OPEN: int
+    STREAM_NOT_RUNNING: int
+
+
+class LjmConstants(Protocol):
+    """``labjack.ljm.constants``: the ones the drivers use."""
+
+    DUMMY_VALUE: int
+
+
+class Ljm(Protocol):
+    """The ``labjack.ljm`` module as the T8 drivers call it, or a stand-in with the same
+    signatures (`fleetdaq.edge.drivers.sim_ljm.SimLJM`, a test's fake): the transport a T8
+    driver's constructor takes. Every call raises `LJMError` (with `errorCode`) on failure."""
+
+    @property
+    def LJMError(self) -> type[Exception]: ...
+
+    @property
+    def errorcodes(self) -> LjmErrorCodes: ...
+
+    @property
+    def constants(self) -> LjmConstants: ...
+
+    def openS(self, deviceType: str, connectionType: str, identifier: str, /) -> int: ...
+
+    def close(self, handle: int, /) -> None: ...
+
+    def eWriteName(self, handle: int, name: str, value: float, /) -> None: ...
+
+    def eWriteNames(
+        self, handle: int, numFrames: int, aNames: Sequence[str], aValues: Sequence[float], /
+    ) -> None: ...
+
+    def eReadName(self, handle: int, name: str, /) -> float: ...
+
+    def eReadNames(self, handle: int, numFrames: int, aNames: Sequence[str], /) -> list[float]: ...
+
+    def namesToAddresses(
+        self, numFrames: int, aNames: Sequence[str], /
+    ) -> tuple[list[int], list[int]]: ...
+
+    def eStreamStart(
+        self,
+        handle: int,
+        scansPerRead: int,
+        numAddresses: int,
+        aScanList: Sequence[int],
+        scanRate: float,
+        /,
+    ) -> float: ...
+
+    def eStreamStop(self, handle: int, /) -> None: ...
+
+    def eStreamRead(self, handle: int, /) -> tuple[list[float], int, int]: ...
+
+
+_P = ParamSpec("_P")
+_T = TypeVar("_T")
 
 
 def t8_range(value: float) -> float:
@@ -96,7 +162,7 @@ _GONE = {
 }
 
 
-def load_ljm() -> Any:
+def load_ljm() -> Ljm:
     """Import labjack-ljm's module, or raise DriverUnavailable saying what to install.
 
     The Python wrapper installs without the native library; it then prints an error at import
@@ -109,13 +175,13 @@ def load_ljm() -> Any:
         raise DriverUnavailable(f"the LabJack T8 needs labjack-ljm: {_INSTALL}") from err
     if getattr(getattr(ljm, "ljm", None), "_staticLib", object()) is None:
         raise DriverUnavailable(f"the LabJack T8 needs LJM's native library: {_INSTALL}")
-    return ljm
+    return cast(Ljm, ljm)  # labjack-ljm ships no type information
 
 
 class LjmDevice:
     """A T8 handle and LJM error wrapping, shared by the stream, poll and output classes."""
 
-    def __init__(self, ljm: Any, connection: str, identifier: str, clock: TimeSource) -> None:
+    def __init__(self, ljm: Ljm, connection: str, identifier: str, clock: TimeSource) -> None:
         self.ljm = ljm
         self.connection = connection
         self.identifier = identifier
@@ -147,15 +213,17 @@ class LjmDevice:
             return DeviceDisconnected(message, code)
         return DeviceError(message, code)
 
-    def call(self, call: str, *args: Any) -> Any:
+    def call(self, fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
+        """`fn(*args)`, an LJM function: an `LJMError` is raised as a typed DriverError."""
         try:
-            return getattr(self.ljm, call)(*args)
+            return fn(*args, **kwargs)
         except self.error_type as err:
-            raise self.wrap(err, call) from err
+            raise self.wrap(err, fn.__name__) from err
 
     def open(self) -> int:
-        self.handle = self.call("openS", "T8", self.connection, self.identifier)
-        return self.handle
+        handle = self.call(self.ljm.openS, "T8", self.connection, self.identifier)
+        self.handle = handle
+        return handle
 
     def close(self) -> None:
         handle, self.handle = self.handle, None
@@ -247,7 +315,7 @@ class T8Outputs:
 
     def __init__(
         self,
-        transport: Any | None = None,
+        transport: Ljm | None = None,
         connection: str = "ANY",
         identifier: str = "ANY",
         clock: TimeSource = SYSTEM_TIME,
@@ -278,18 +346,25 @@ class T8Outputs:
         with self.lock:
             self.dev.close()
 
-    def call(self, call: str, *args: Any) -> Any:
-        """`ljm.<call>(handle, *args)`, reopening once if the handle went stale."""
+    def call(
+        self, fn: Callable[Concatenate[int, _P], _T], *args: _P.args, **kwargs: _P.kwargs
+    ) -> _T:
+        """`fn(handle, *args)` (`fn` an LJM function taking the handle first), reopening once
+        if the handle went stale."""
         with self.lock:
-            self.open()
+            handle = self._handle()
             try:
-                return self.dev.call(call, self.dev.handle, *args)
+                return self.dev.call(fn, handle, *args, **kwargs)
             except DeviceError as err:
                 if err.code not in self._stale:
                     raise
                 self.dev.handle = None
-                self.open()
-                return self.dev.call(call, self.dev.handle, *args)
+                return self.dev.call(fn, self._handle(), *args, **kwargs)
+
+    def _handle(self) -> int:
+        self.open()
+        assert self.dev.handle is not None  # `open` sets it or raises
+        return self.dev.handle
 
     def set_dac(self, dac: int, volts: float) -> float:
         """Set DAC0 or DAC1; returns the readback (V). Raises ValueError outside -0.1..10 V."""
@@ -312,11 +387,11 @@ class T8Outputs:
 
     def write_read(self, name: str, value: float) -> float:
         with self.lock:
-            self.call("eWriteName", name, value)
+            self.call(self.ljm.eWriteName, name, value)
             return self.read(name)
 
     def read(self, name: str) -> float:
-        return float(self.call("eReadName", name))
+        return float(self.call(self.ljm.eReadName, name))
 
     @staticmethod
     def _check_line(line: str) -> None:

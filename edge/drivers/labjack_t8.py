@@ -27,7 +27,7 @@ import contextlib
 import logging
 import threading
 from collections.abc import Sequence
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +43,7 @@ from fleetdaq.edge.drivers.labjack_ljm import (
     T8_MAX_SAMPLE_RATE,
     CoreTimer,
     LabJackT8Sim,
+    Ljm,
     LjmDevice,
     T8Connection,
     load_ljm,
@@ -127,7 +128,7 @@ class LabJackT8:
     """
 
     def __init__(
-        self, cfg: LabJackT8Stream, transport: Any | None = None, clock: TimeSource = SYSTEM_TIME
+        self, cfg: LabJackT8Stream, transport: Ljm | None = None, clock: TimeSource = SYSTEM_TIME
     ) -> None:
         self.cfg = cfg
         self.clock = clock
@@ -158,9 +159,9 @@ class LabJackT8:
     def open(self) -> None:
         self._closing.clear()
         dev = self.dev
-        dev.open()
+        handle = dev.open()
         try:
-            self._stop_stream()  # a stream left running by a previous process
+            self._stop_stream(handle)  # a stream left running by a previous process
             names = [
                 "STREAM_TRIGGER_INDEX",
                 "STREAM_CLOCK_SOURCE",
@@ -178,11 +179,16 @@ class LabJackT8:
             for ain, ch in zip(self.ains, self.cfg.channels, strict=True):
                 names.append(f"AIN{ain}_RANGE")
                 values.append(ch.range)
-            dev.call("eWriteNames", dev.handle, len(names), names, values)
+            dev.call(self.ljm.eWriteNames, handle, len(names), names, values)
             scan_list = [f"AIN{a}" for a in self.ains] + ["CORE_TIMER", "STREAM_DATA_CAPTURE_16"]
-            addresses = dev.call("namesToAddresses", len(scan_list), scan_list)[0]
+            addresses = dev.call(self.ljm.namesToAddresses, len(scan_list), scan_list)[0]
             actual = dev.call(
-                "eStreamStart", dev.handle, self.scans, len(addresses), addresses, self.cfg.rate_hz
+                self.ljm.eStreamStart,
+                handle,
+                self.scans,
+                len(addresses),
+                addresses,
+                self.cfg.rate_hz,
             )
         except DriverError:
             dev.close()
@@ -218,10 +224,10 @@ class LabJackT8:
         self._closing.set()
         if self.dev.handle is not None:
             with contextlib.suppress(DriverError):
-                self._stop_stream()
+                self._stop_stream(self.dev.handle)
         self.dev.close()
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> dict[str, object]:
         return {
             "device_scan_backlog": self.device_scan_backlog,
             "ljm_scan_backlog": self.ljm_scan_backlog,
@@ -235,7 +241,9 @@ class LabJackT8:
 
     # -- decoding --------------------------------------------------------------------------
 
-    def _block(self, data: Any, device_backlog: int, ljm_backlog: int, host_ns: int) -> Block:
+    def _block(
+        self, data: Sequence[float], device_backlog: int, ljm_backlog: int, host_ns: int
+    ) -> Block:
         raw, skipped, ticks32 = decode_scans(data, len(self.ains), self._dummy)
         scans = raw.shape[0]
         status: npt.NDArray[np.uint8] | None = None
@@ -328,9 +336,9 @@ class LabJackT8:
                 "the link to the T8 is too slow",
             )
 
-    def _stop_stream(self) -> None:
+    def _stop_stream(self, handle: int) -> None:
         try:
-            self.ljm.eStreamStop(self.dev.handle)
+            self.ljm.eStreamStop(handle)
         except self.dev.error_type as err:
             if getattr(err, "errorCode", None) != self.ljm.errorcodes.STREAM_NOT_RUNNING:
                 raise self.dev.wrap(err, "eStreamStop") from err

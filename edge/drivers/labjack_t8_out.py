@@ -18,12 +18,18 @@ are read first and written only when they differ.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import Field
 
 from fleetdaq.contract.schema import OutputBase
-from fleetdaq.edge.drivers.labjack_ljm import LabJackT8Sim, T8Connection, T8Outputs, dio_number
+from fleetdaq.edge.drivers.labjack_ljm import (
+    LabJackT8Sim,
+    Ljm,
+    T8Connection,
+    T8Outputs,
+    dio_number,
+)
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from fleetdaq.edge.drivers.shared import SharedDevices
 
@@ -123,7 +129,7 @@ class T8Watchdog:
         want = self.settings(timeout_s)
         names = ["WATCHDOG_ENABLE_DEFAULT", *self.NAMES]
         with self.device.lock:
-            have = self.device.call("eReadNames", len(names), names)
+            have = self.device.call(self.device.ljm.eReadNames, len(names), names)
             enabled = float(have[0]) == 1.0
             same = all(
                 math.isclose(float(h), want[n], abs_tol=1e-3)
@@ -137,12 +143,12 @@ class T8Watchdog:
                 return what + " (already set)"
             order = ["WATCHDOG_ENABLE_DEFAULT", *self.NAMES, "WATCHDOG_ENABLE_DEFAULT"]
             values = [0.0, *(want[n] for n in self.NAMES), 1.0]
-            self.device.call("eWriteNames", len(order), order, values)
+            self.device.call(self.device.ljm.eWriteNames, len(order), order, values)
             self.writes += 1
         return what
 
     def feed(self) -> None:
-        """Any command-response communication restarts the T8's watchdog timer."""
+        """Every command-response exchange restarts the T8's watchdog timer."""
         self.device.read("WATCHDOG_ENABLE_DEFAULT")
 
     def describe(self) -> str:
@@ -153,7 +159,7 @@ class T8Watchdog:
 
 def _t8(
     cfg: LabJackT8DacOutput | LabJackT8DioOutput,
-    transport: Any | None,
+    transport: Ljm | None,
     clock: TimeSource,
     shared: SharedDevices,
 ) -> tuple[T8Outputs, T8Watchdog]:
@@ -182,7 +188,7 @@ class _T8Output:
         self.device.open()
 
     def write(self, value: float) -> None:
-        self.device.call("eWriteName", self.register, float(value))
+        self.device.call(self.device.ljm.eWriteName, self.register, float(value))
 
     def read(self) -> float:
         return self.device.read(self.register)
@@ -207,7 +213,7 @@ class T8DacDriver(_T8Output):
     def __init__(
         self,
         cfg: LabJackT8DacOutput,
-        transport: Any | None = None,
+        transport: Ljm | None = None,
         clock: TimeSource = SYSTEM_TIME,
         shared: SharedDevices | None = None,
     ) -> None:
@@ -222,7 +228,7 @@ class T8DioDriver(_T8Output):
     def __init__(
         self,
         cfg: LabJackT8DioOutput,
-        transport: Any | None = None,
+        transport: Ljm | None = None,
         clock: TimeSource = SYSTEM_TIME,
         shared: SharedDevices | None = None,
     ) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import AfterValidator, Field
@@ -17,6 +17,7 @@ from fleetdaq.edge.drivers.labjack_ljm import (
     T8_ADC_BITS,
     CoreTimer,
     LabJackT8Sim,
+    Ljm,
     LjmDevice,
     T8Connection,
     T8Outputs,
@@ -73,7 +74,7 @@ class LabJackT8Poll:
     def __init__(
         self,
         cfg: LabJackT8PollStream,
-        transport: Any | None = None,
+        transport: Ljm | None = None,
         clock: TimeSource = SYSTEM_TIME,
     ) -> None:
         self.cfg = cfg
@@ -97,7 +98,7 @@ class LabJackT8Poll:
 
     def open(self) -> None:
         self._closing.clear()
-        self.dev.open()
+        handle = self.dev.open()
         names: list[str] = []
         values: list[float] = []
         for ch in self.cfg.channels:
@@ -106,7 +107,7 @@ class LabJackT8Poll:
                 values += [ch.range, float(self.cfg.resolution_index)]
         try:
             if names:
-                self.dev.call("eWriteNames", self.dev.handle, len(names), names, values)
+                self.dev.call(self.ljm.eWriteNames, handle, len(names), names, values)
         except DriverError:
             self.dev.close()
             raise
@@ -137,7 +138,9 @@ class LabJackT8Poll:
             if due is None or self.dev.handle is None:
                 raise InterruptedError("driver closed")
             passed, overdue = due
-            values = self.dev.call("eReadNames", self.dev.handle, len(self.names), self.names)
+            values = self.dev.call(
+                self.ljm.eReadNames, self.dev.handle, len(self.names), self.names
+            )
             if passed and timer:
                 # Made after a stretch without polls: it starts the next block.
                 self._carried = (values, self.clock.time_ns())
@@ -165,5 +168,5 @@ class LabJackT8Poll:
         self._closing.set()
         self.dev.close()
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> dict[str, object]:
         return {"late_polls": self.pacer.late, "reconnects": self.reconnects}

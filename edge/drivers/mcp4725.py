@@ -22,14 +22,15 @@ when the edge is gone; it is written only when it differs (EEPROM endurance).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, Field, model_validator
 
 from fleetdaq.contract.errors import DeviceError
 from fleetdaq.contract.schema import Float, Int, OutputBase, Strict
-from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault, Smbus2, is_nack, load_smbus2, open_bus
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from fleetdaq.edge.drivers.shared import SharedDevices
 
@@ -136,6 +137,9 @@ def decode_mcp4725(data: bytes) -> Mcp4725Status:
     )
 
 
+_T = TypeVar("_T")
+
+
 class Mcp4725Driver:
     """The `mcp4725` output driver.
 
@@ -151,14 +155,14 @@ class Mcp4725Driver:
     def __init__(
         self,
         cfg: Mcp4725Output,
-        transport: Any | None = None,
+        transport: Smbus2 | None = None,
         clock: TimeSource = SYSTEM_TIME,
         shared: SharedDevices | None = None,
     ) -> None:
         self.cfg = cfg
         self.clock = clock
         self.smbus = transport if transport is not None else load_smbus2("MCP4725")
-        self._bus: Any = None
+        self._bus: I2cBus | None = None
         self.lock = threading.Lock()
         self.eeprom_writes = 0
         self._never = threading.Event()
@@ -185,12 +189,12 @@ class Mcp4725Driver:
         return code_to_volts(self.status().code, self.cfg.vref)
 
     def status(self) -> Mcp4725Status:
-        def op(bus: Any) -> bytes:
+        def op(bus: I2cBus) -> bytes:
             msg = self.smbus.i2c_msg.read(self.cfg.address, 5)
             bus.i2c_rdwr(msg)
             return bytes(msg)
 
-        data: bytes = self._io(op, "read")
+        data = self._io(op, "read")
         try:
             return decode_mcp4725(data)
         except ValueError as err:
@@ -219,7 +223,7 @@ class Mcp4725Driver:
                 raise DeviceError(f"{self.where}: EEPROM write did not complete")
             self.clock.sleep_until(self.clock.monotonic_ns() + 5_000_000, self._never)
 
-    def _io(self, op: Any, what: str) -> Any:
+    def _io(self, op: Callable[[I2cBus], _T], what: str) -> _T:
         with self.lock:
             if self._bus is None:
                 self._bus = open_bus(self.smbus, self.cfg.bus)

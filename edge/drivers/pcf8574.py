@@ -23,13 +23,14 @@ through an optocoupler); set `invert: true` and the output's 1 means "relay on" 
 from __future__ import annotations
 
 import threading
-from typing import Annotated, Any, Literal
+from collections.abc import Callable
+from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, Field
 
 from fleetdaq.contract.errors import DeviceError
 from fleetdaq.contract.schema import Int, OutputBase, Strict
-from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault, Smbus2, is_nack, load_smbus2, open_bus
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from fleetdaq.edge.drivers.shared import SharedDevices
 
@@ -94,13 +95,16 @@ def value_of(level: bool, invert: bool) -> float:
     return 1.0 if level != invert else 0.0
 
 
+_T = TypeVar("_T")
+
+
 class Pcf8574Port:
     """One PCF8574: its bus, the byte last written (the port latch), one transaction at a time.
 
     Raises DeviceError (keeping the errno) when the chip does not acknowledge after `retries`.
     """
 
-    def __init__(self, smbus: Any, bus: int, address: int, retries: int) -> None:
+    def __init__(self, smbus: Smbus2, bus: int, address: int, retries: int) -> None:
         self.smbus = smbus
         self.bus_number = bus
         self.address = address
@@ -110,7 +114,7 @@ class Pcf8574Port:
         """The byte the first write starts from: every driven pin at its initial level."""
         self.port: int | None = None
         """The byte last written; None before the first write."""
-        self._bus: Any = None
+        self._bus: I2cBus | None = None
         self.nacks = 0
 
     @property
@@ -142,7 +146,7 @@ class Pcf8574Port:
         with self.lock:
             return int(self._io(lambda bus: bus.read_byte(self.address), "read"))
 
-    def _io(self, op: Any, what: str) -> Any:
+    def _io(self, op: Callable[[I2cBus], _T], what: str) -> _T:
         if self._bus is None:
             self._bus = open_bus(self.smbus, self.bus_number)
         for attempt in range(self.retries + 1):
@@ -172,7 +176,7 @@ class Pcf8574Driver:
     def __init__(
         self,
         cfg: Pcf8574Output,
-        transport: Any | None = None,
+        transport: Smbus2 | None = None,
         clock: TimeSource = SYSTEM_TIME,
         shared: SharedDevices | None = None,
     ) -> None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -69,7 +68,7 @@ class PolledDriver:
     def disconnect(self) -> None:
         raise NotImplementedError
 
-    def extra_health(self) -> dict[str, Any]:
+    def extra_health(self) -> dict[str, object]:
         return {}
 
     # -- Driver protocol -------------------------------------------------------------------
@@ -124,7 +123,7 @@ class PolledDriver:
         self.closing.set()
         self.disconnect()
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> dict[str, object]:
         return {
             "faulty_polls": self.faulty_polls,
             "late_polls": self.pacer.late,

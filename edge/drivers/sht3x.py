@@ -15,14 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
 from fleetdaq.contract.errors import DeviceError, DeviceNotFound
 from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase, Strict
 from fleetdaq.contract.wire import SampleStatus
-from fleetdaq.edge.drivers.i2cbus import I2cFault, is_nack, load_smbus2, open_bus
+from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault, Smbus2, is_nack, load_smbus2, open_bus
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
 from fleetdaq.edge.drivers.polled import Poll, PolledDriver
 
@@ -118,12 +118,12 @@ class Sht3x(PolledDriver):
     fault_tag = "sensor_fault"
 
     def __init__(
-        self, cfg: Sht3xStream, transport: Any | None = None, clock: TimeSource = SYSTEM_TIME
+        self, cfg: Sht3xStream, transport: Smbus2 | None = None, clock: TimeSource = SYSTEM_TIME
     ) -> None:
         super().__init__(cfg.rate_hz, cfg.batch_scans, len(cfg.channels), clock)
         self.cfg = cfg
         self.smbus = transport if transport is not None else load_smbus2("SHT3x")
-        self._bus: Any = None
+        self._bus: I2cBus | None = None
         self.retries = 0
         self.crc_errors = 0
         self.nacks = 0
@@ -185,5 +185,5 @@ class Sht3x(PolledDriver):
         if bus is not None:
             bus.close()
 
-    def extra_health(self) -> dict[str, Any]:
+    def extra_health(self) -> dict[str, object]:
         return {"retries": self.retries, "crc_errors": self.crc_errors, "nacks": self.nacks}

@@ -23,12 +23,13 @@ import ctypes
 import errno
 import math
 import threading
-from collections.abc import Iterator
-from typing import Any, ClassVar, Protocol
+from collections.abc import Iterator, Sequence
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from fleetdaq.edge.drivers.hd44780 import BACKLIGHT, DEGREE, ROW_OFFSETS, RS, E, LcdDisplay, LcdSim
+from fleetdaq.edge.drivers.i2cbus import I2cMessage
 from fleetdaq.edge.drivers.mcp4725 import WRITE_DAC, WRITE_DAC_EEPROM, Mcp4725Output, Mcp4725Sim
 from fleetdaq.edge.drivers.pacing import TimeSource
 from fleetdaq.edge.drivers.pcf8574 import POWER_ON_PORT, Pcf8574Output, Pcf8574Sim
@@ -41,7 +42,7 @@ from fleetdaq.edge.drivers.sht3x import (
     Sht3xStream,
     encode_sht3x,
 )
-from fleetdaq.edge.drivers.simfaults import FaultSchedule
+from fleetdaq.edge.drivers.simfaults import Fault, FaultSchedule
 
 
 def nack() -> OSError:
@@ -69,7 +70,7 @@ class SimI2cMsg:
         return cls(address, cls.I2C_M_RD, bytearray(length))
 
     @classmethod
-    def write(cls, address: int, buf: Any) -> SimI2cMsg:
+    def write(cls, address: int, buf: bytes | list[int] | str) -> SimI2cMsg:
         data = buf.encode() if isinstance(buf, str) else bytes(buf)
         return cls(address, 0, bytearray(data))
 
@@ -106,7 +107,7 @@ class SimSMBus:
             raise nack()  # nobody acknowledges the address
         return device
 
-    def i2c_rdwr(self, *i2c_msgs: Any) -> None:
+    def i2c_rdwr(self, *i2c_msgs: I2cMessage) -> None:
         with self._lock:
             for msg in i2c_msgs:
                 device = self._device(msg.addr)
@@ -115,7 +116,8 @@ class SimSMBus:
                     if isinstance(msg, SimI2cMsg):
                         msg.buf[:] = data
                     else:  # a real smbus2.i2c_msg: fill its ctypes buffer
-                        ctypes.memmove(msg.buf, data, msg.len)
+                        buf = getattr(msg, "buf")  # noqa: B009 (a ctypes pointer: not in I2cMessage)
+                        ctypes.memmove(buf, data, msg.len)
                 else:
                     device.write(bytes(msg))
 
@@ -151,7 +153,7 @@ class SimSmbus2:
 
 
 class _Faulty:
-    def __init__(self, faults: Any, seed: int | None, clock: TimeSource) -> None:
+    def __init__(self, faults: Sequence[Fault], seed: int | None, clock: TimeSource) -> None:
         self.clock = clock
         self.rng = np.random.default_rng(seed)
         self.faults = FaultSchedule(faults, self.rng)

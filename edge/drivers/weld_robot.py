@@ -18,7 +18,7 @@ wait_s, by = pulse | timeout).
 from __future__ import annotations
 
 import logging
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 
@@ -139,7 +139,7 @@ class WeldRobotSim(PolledDriver):
                     )
                 )
 
-    def extra_health(self) -> dict[str, Any]:
+    def extra_health(self) -> dict[str, object]:
         s = self.cell.state()
         return {"layer": s.layer, "waits": s.waits, "timeouts": s.timeouts}
 
@@ -150,7 +150,7 @@ class WeldRobotResume:
     def __init__(
         self,
         cfg: WeldRobotResumeOutput,
-        transport: Any | None = None,
+        transport: object = None,  # the registry's uniform signature: the cell is simulated
         clock: TimeSource = SYSTEM_TIME,
         shared: SharedDevices | None = None,
     ) -> None:

@@ -15,7 +15,6 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from mcap.reader import make_reader
 
@@ -50,7 +49,7 @@ class AlarmReport:
     """(alarm, hours in alarm)."""
     by_severity: dict[str, int] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {
             "start_ns": self.start_ns,
             "end_ns": self.end_ns,

@@ -10,13 +10,13 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from fleetdaq import __version__
 from fleetdaq.analysis.errors import AnalysisError, UnknownChannel
 from fleetdaq.analysis.recording import Recording, StreamInfo
 from fleetdaq.analysis.stream import Gap
-from fleetdaq.analysis.window import format_ns
+from fleetdaq.analysis.window import TimeLike, format_ns
 
 FORMATS = ("parquet", "hdf5", "csv", "netcdf")
 METADATA_DIR = "_fleetdaq"
@@ -65,7 +65,7 @@ class StreamExport:
     first_ns: int | None = None
     last_ns: int | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {
             "node": self.info.node,
             "stream": self.info.stream,
@@ -110,8 +110,8 @@ def plan_export(
     *,
     streams: Sequence[str] = (),
     channels: Sequence[str] = (),
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
 ) -> ExportPlan:
     """Check the request before writing anything.
 
@@ -155,7 +155,23 @@ def plan_export(
     return ExportPlan(recording, fmt, out, chosen, a, b)
 
 
-def summary_of(plan: ExportPlan, exports: list[StreamExport]) -> dict[str, Any]:
+class ExportWindow(TypedDict):
+    start: str | None
+    end: str | None
+
+
+class ExportSummary(TypedDict):
+    """An export's ``summary.json`` (and the attributes of an HDF5 export)."""
+
+    exported_by: str
+    exported_at: str
+    format: str
+    window: ExportWindow
+    sessions: list[dict[str, object]]
+    streams: dict[str, dict[str, object]]
+
+
+def summary_of(plan: ExportPlan, exports: list[StreamExport]) -> ExportSummary:
     return {
         "exported_by": f"fleetdaq {__version__}",
         "exported_at": dt.datetime.now(dt.UTC).isoformat(),

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -20,6 +20,12 @@ from fleetdaq.analysis.export_plan import (
     write_metadata,
 )
 from fleetdaq.analysis.stream import StreamData
+
+if TYPE_CHECKING:  # the analysis extra's libraries ship no type information
+    import h5netcdf
+    import h5py
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
 
 
 class Writer(Protocol):
@@ -56,7 +62,7 @@ class _ParquetWriter:
         self.columns: list[str] = list(dict.fromkeys(c for s in self.streams.values() for c in s))
         self.schema = self._schema()
 
-    def _schema(self) -> Any:
+    def _schema(self) -> pa.Schema:
         import pandas as pd
         import pyarrow as pa
 
@@ -136,7 +142,7 @@ class _ParquetWriter:
 class _CsvWriter:
     def __init__(self, plan: ExportPlan) -> None:
         self.plan = plan
-        self.writer: Any = None
+        self.writer: pcsv.CSVWriter | None = None
 
     def begin(self, exp: StreamExport, piece: StreamData) -> None:
         import pyarrow as pa
@@ -163,6 +169,7 @@ class _CsvWriter:
         # An invalid sample (NaN) is written as an empty field, not "nan": readers that infer
         # types (polars, DuckDB) then keep the column a float
         columns += [pa.array(piece.data[:, i], from_pandas=True) for i in range(len(exp.channels))]
+        assert self.writer is not None  # `begin` opened it
         self.writer.write_table(pa.Table.from_arrays(columns, schema=self.schema))
 
     def end(self, exp: StreamExport) -> None:
@@ -180,7 +187,7 @@ class _CsvWriter:
 class _NetcdfWriter:
     def __init__(self, plan: ExportPlan) -> None:
         self.plan = plan
-        self.file: Any = None
+        self.file: h5netcdf.File | None = None
         self.n = 0
 
     def begin(self, exp: StreamExport, piece: StreamData) -> None:
@@ -212,6 +219,7 @@ class _NetcdfWriter:
 
     def piece(self, exp: StreamExport, piece: StreamData, source: Path) -> None:
         f = self.file
+        assert f is not None  # `begin` opened it
         n0, n1 = self.n, self.n + len(piece)
         f.resize_dimension("time", n1)
         f.variables["time"][n0:n1] = piece.time_ns
@@ -220,6 +228,7 @@ class _NetcdfWriter:
         self.n = n1
 
     def end(self, exp: StreamExport) -> None:
+        assert self.file is not None  # `begin` opened it
         self.file.attrs["sample_rate_hz"] = exp.sample_rate_hz
         self.file.attrs["gaps"] = json.dumps([g.as_dict() for g in exp.gaps])
         self.release()
@@ -239,7 +248,7 @@ class _Hdf5Writer:
 
         self.plan = plan
         plan.out.parent.mkdir(parents=True, exist_ok=True)
-        self.file: Any = h5py.File(plan.out, "w")
+        self.file: h5py.File = h5py.File(plan.out, "w")
         self.n = 0
         summary = summary_of(plan, [])
         attrs = self.file.attrs

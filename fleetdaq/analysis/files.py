@@ -20,11 +20,14 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from fleetdaq.analysis.errors import DamagedRecording, NoRecording
 from fleetdaq.analysis.mcapio import iter_messages
 from fleetdaq.hub.recording.session import ACTIVE_SUFFIX, FILE_INDEX_METADATA
+
+if TYPE_CHECKING:
+    from mcap.summary import Summary
 
 Source = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
 """A session folder, a data root, an MCAP file, or a list of those."""
@@ -91,7 +94,7 @@ class RecordedFile:
 
     path: Path
     size: int
-    summary: Any
+    summary: Summary | None
     """mcap's `Summary` (None for a file without one)."""
     session: dict[str, str]
     """The ``fleetdaq.session`` metadata record (empty when missing)."""

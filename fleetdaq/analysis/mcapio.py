@@ -16,9 +16,13 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from fleetdaq.analysis.errors import DamagedRecording
+
+if TYPE_CHECKING:
+    from mcap.records import ChunkIndex
+    from mcap.summary import Summary
 
 _RECORD = struct.Struct("<BQ")
 _MESSAGE = struct.Struct("<HIQQ")  # channel_id, sequence, log_time, publish_time
@@ -90,7 +94,7 @@ def _messages(records: bytes, channel_ids: frozenset[int]) -> Iterator[RawMessag
 
 def iter_messages(
     path: Path,
-    summary: Any,
+    summary: Summary | None,
     channel_ids: Iterable[int],
     pool: ThreadPoolExecutor | None = None,
     prefetch: int = 4,
@@ -119,7 +123,7 @@ def iter_messages(
 def _chunks(
     path: Path,
     fd: int,
-    chunks: list[Any],
+    chunks: list[ChunkIndex],
     ids: frozenset[int],
     pool: ThreadPoolExecutor | None,
     prefetch: int,

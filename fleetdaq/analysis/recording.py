@@ -14,14 +14,14 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from fleetdaq.analysis.assemble import Assembler
 from fleetdaq.analysis.errors import DamagedRecording, UnknownStream
 from fleetdaq.analysis.files import RecordedFile, Source, find_files, load_file, read_attachment
 from fleetdaq.analysis.mcapio import iter_messages
 from fleetdaq.analysis.stream import StreamData
-from fleetdaq.analysis.window import resolve_window
+from fleetdaq.analysis.window import TimeLike, resolve_window
 from fleetdaq.contract.cdr import decode
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.messages import (
@@ -155,7 +155,7 @@ class Recording:
         data = read_attachment(self.files[0].path, "config.yaml")
         return None if data is None else data.decode("utf-8", errors="replace")
 
-    def window(self, start: Any | None, end: Any | None) -> tuple[int | None, int | None]:
+    def window(self, start: TimeLike | None, end: TimeLike | None) -> tuple[int | None, int | None]:
         """`start` / `end` (see `fleetdaq.analysis.window`) as UTC ns; relative times count
         from `start_ns`."""
         return resolve_window(start, end, self.start_ns)
@@ -214,8 +214,8 @@ class Recording:
         self,
         stream: str,
         *,
-        start: Any | None = None,
-        end: Any | None = None,
+        start: TimeLike | None = None,
+        end: TimeLike | None = None,
         channels: Sequence[str] | str | None = None,
     ) -> StreamData:
         """One stream (see `fleetdaq.read.read_stream`)."""
@@ -229,8 +229,8 @@ class Recording:
         self,
         stream: str,
         *,
-        start: Any | None = None,
-        end: Any | None = None,
+        start: TimeLike | None = None,
+        end: TimeLike | None = None,
         channels: Sequence[str] | str | None = None,
     ) -> Iterator[StreamData]:
         """The stream in consecutive pieces (one per group of files, usually one file each):
@@ -313,7 +313,7 @@ class Recording:
                         yield ids[cid], publish, payload
 
     def _decoded(
-        self, msgtype: str, cls: type[T], start: Any | None, end: Any | None
+        self, msgtype: str, cls: type[T], start: TimeLike | None, end: TimeLike | None
     ) -> list[tuple[str, T]]:
         a, b = self.window(start, end)
         topics = {t for f in self.files for t, ty in f.topics.items() if ty == msgtype}
@@ -326,16 +326,18 @@ class Recording:
         out.sort(key=lambda x: x[0])
         return [(topic, msg) for _, topic, msg in out]
 
-    def events(self, *, start: Any | None = None, end: Any | None = None) -> list[Event]:
+    def events(self, *, start: TimeLike | None = None, end: TimeLike | None = None) -> list[Event]:
         """Every recorded event (``/events``) in the window, in time order."""
         return [m for _, m in self._decoded(EVENT_TYPE, Event, start, end)]
 
-    def alarms(self, *, start: Any | None = None, end: Any | None = None) -> list[AlarmState]:
+    def alarms(
+        self, *, start: TimeLike | None = None, end: TimeLike | None = None
+    ) -> list[AlarmState]:
         """Every alarm transition (``/alarms``) in the window, in time order."""
         return [m for _, m in self._decoded(ALARM_STATE_TYPE, AlarmState, start, end)]
 
     def health(
-        self, node: str | None = None, *, start: Any | None = None, end: Any | None = None
+        self, node: str | None = None, *, start: TimeLike | None = None, end: TimeLike | None = None
     ) -> list[NodeHealth]:
         """Node health messages (about 1 Hz per node; the hub's own as node ``hub``). `node`
         as in the site file (``am-cell``) or as recorded in topics (``am_cell``)."""

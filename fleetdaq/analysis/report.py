@@ -13,7 +13,6 @@ import datetime as dt
 import html
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,7 +23,7 @@ from fleetdaq.analysis.assemble import gaps_between
 from fleetdaq.analysis.envelope import Envelope
 from fleetdaq.analysis.recording import Recording, StreamInfo
 from fleetdaq.analysis.stream import BatchTable, Gap
-from fleetdaq.analysis.window import format_ns
+from fleetdaq.analysis.window import TimeLike, format_ns
 from fleetdaq.contract.messages import AlarmState, Event, NodeHealth
 
 MAX_BINS = 1000
@@ -136,8 +135,8 @@ def _clock_series(
 def build_report(
     rec: Recording,
     *,
-    start: Any | None = None,
-    end: Any | None = None,
+    start: TimeLike | None = None,
+    end: TimeLike | None = None,
     progress: Progress | None = None,
 ) -> str:
     """The report as one HTML document (str)."""
@@ -153,7 +152,7 @@ def build_report(
     return _page(rec, a, b, streams, events, alarms, clock)
 
 
-def planned_batches(rec: Recording, start: Any | None, end: Any | None) -> int:
+def planned_batches(rec: Recording, start: TimeLike | None, end: TimeLike | None) -> int:
     a, b = rec.window(start, end)
     return sum(
         f.counts.get(info.topic, 0)

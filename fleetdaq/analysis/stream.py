@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -45,7 +45,7 @@ class Gap:
     def duration_ns(self) -> int:
         return self.end_ns - self.start_ns
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {
             "kind": self.kind,
             "start": format_ns(self.start_ns),
@@ -160,7 +160,7 @@ class StreamData:
             f" ({', '.join(self.channels)}){span}, {len(self.gaps)} gaps>"
         )
 
-    def attrs(self) -> dict[str, Any]:
+    def attrs(self) -> dict[str, object]:
         """What travels with the data into pandas' ``attrs`` and xarray's attributes."""
         return {
             "node": self.node,

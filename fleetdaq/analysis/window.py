@@ -12,13 +12,13 @@ from __future__ import annotations
 import calendar
 import datetime as dt
 import re
-from typing import Any, Final
+from typing import Final
 
 import numpy as np
 
 from fleetdaq.analysis.errors import BadWindow
 
-TimeLike = int | str | dt.datetime | np.datetime64
+TimeLike = int | np.integer | str | dt.datetime | np.datetime64
 """What `start` / `end` accept (see the module's docstring)."""
 
 _UNITS: Final = {
@@ -40,7 +40,7 @@ _ISO = re.compile(
 )
 
 
-def parse_time(value: Any, origin_ns: int | None = None) -> int:
+def parse_time(value: object, origin_ns: int | None = None) -> int:
     """`value` as integer UTC ns. `origin_ns` is what ``+90s`` counts from (the recording's
     start); without one a relative time is an error.
 
@@ -111,7 +111,7 @@ def _from_text(text: str, origin_ns: int | None) -> int:
 
 
 def resolve_window(
-    start: Any | None, end: Any | None, origin_ns: int | None = None
+    start: TimeLike | None, end: TimeLike | None, origin_ns: int | None = None
 ) -> tuple[int | None, int | None]:
     """(start_ns, end_ns), each None when not given.
 

@@ -5,7 +5,6 @@ loads the edge package and its dependencies, never the hub's (mcap, rich)."""
 from __future__ import annotations
 
 import importlib
-from typing import Any
 
 import click
 
@@ -40,7 +39,7 @@ class LazyGroup(click.Group):
         if target is None:
             return super().get_command(ctx, cmd_name)
         module_name, _, attr = target.partition(":")
-        command: Any = getattr(importlib.import_module(module_name), attr)
+        command: object = getattr(importlib.import_module(module_name), attr)
         if not isinstance(command, click.Command):
             raise TypeError(f"{target} is not a click command")
         return command

@@ -11,11 +11,17 @@ import re
 import socket
 import sys
 from pathlib import Path
-from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer, site_option
+from fleetdaq.cli.common import (
+    HubAnswer,
+    fail,
+    hub_options,
+    hub_request,
+    reads_hub_answer,
+    site_option,
+)
 from fleetdaq.text import text_table, when_text
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|min|h|d)?\s*$")
@@ -30,11 +36,11 @@ def parse_duration(text: str) -> float:
     return float(m.group(1)) * _UNITS[m.group(2)]
 
 
-def _request(config: str, connect: tuple[str, ...], body: dict[str, Any]) -> dict[str, Any]:
+def _request(config: str, connect: tuple[str, ...], body: dict[str, object]) -> HubAnswer:
     return hub_request(config, connect, "alarms", body)
 
 
-def _table(alarms: list[dict[str, Any]], everything: bool) -> str:
+def _table(alarms: list[HubAnswer], everything: bool) -> str:
     rows = [("name", "state", "severity", "since", "value", "count")]
     order = {"critical": 0, "major": 1, "minor": 2, "info": 3}
     shown = [a for a in alarms if everything or a["state"] != "normal" or a["active"]]

@@ -10,18 +10,26 @@ import signal
 import sys
 import threading
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 import click
 
 if TYPE_CHECKING:
+    from types import FrameType
+
+    import zenoh
+
     from fleetdaq.certificate_check import Checked
     from fleetdaq.contract.config.site import SiteConfig
     from fleetdaq.runtime.security import TlsFiles
 
-F = TypeVar("F", bound=Callable[..., Any])
+F = TypeVar("F", bound=Callable[..., object])
+
+HubAnswer = dict[str, Any]
+"""A hub's JSON answer as a command reads it: its values unchecked, read under
+`reads_hub_answer` (a field missing or of another type is one line and exit 2)."""
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
@@ -61,7 +69,7 @@ def site_option(f: F, required: bool = True) -> F:
     # Looked at when the command's module loads, i.e. as it runs. No `default` at all when
     # there is none: click (8.5) takes an explicit default=None as a value given.
     found = _default_site_file()
-    kwargs: dict[str, Any] = {"default": found} if found else {}
+    kwargs: dict[str, Any] = {"default": found} if found else {}  # click.option's **attrs
     return click.option(
         "--config",
         "config",
@@ -106,7 +114,7 @@ def stop_on_signals(hangup: bool = False) -> threading.Event:
     # `kill -USR1 <pid>` prints every thread's stack to stderr: for a process that hangs.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
 
-    def handler(signum: int, frame: Any) -> None:
+    def handler(signum: int, frame: FrameType | None) -> None:
         stop.set()
 
     signal.signal(signal.SIGINT, handler)
@@ -151,7 +159,7 @@ def open_client(
     timeout_ms: int = 3000,
     site: SiteConfig | None = None,
     also: str = "",
-) -> Any:
+) -> zenoh.Session:
     """A Zenoh client session to the hub's router, or one line and exit 2 when unreachable
     (`also` ends it). With the site's `security.tls`, the operator's certificate
     (`fleetdaq.runtime.security.operator_tls`)."""
@@ -161,7 +169,9 @@ def open_client(
         fail(str(err), 2)
 
 
-def _open(endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: str) -> Any:
+def _open(
+    endpoints: list[str], timeout_ms: int, site: SiteConfig | None, also: str
+) -> zenoh.Session:
     """`open_client`, raising `NoAnswer` instead of exiting."""
     import zenoh
 
@@ -207,10 +217,11 @@ def _warn_if_ending(tls: TlsFiles, site: SiteConfig) -> None:
     """One line on stderr when the operator's certificate ends within the days the hub warns
     of its own (certificate_expiring): the command still runs, and nobody is locked out at
     3 a.m. by a date they were never told of."""
+    from fleetdaq.certificate_check import CertificateState
     from fleetdaq.runtime.certificate_dates import warn_days
 
     mine = _judge_pair(tls, warn_days(site))[0]
-    if mine.state == "expiring":
+    if mine.state is CertificateState.EXPIRING:
         click.echo(f"note: your certificate {tls.cert} {mine.message}", err=True)
 
 
@@ -245,12 +256,13 @@ def hub_request(
     config: str,
     connect: tuple[str, ...],
     what: str,
-    body: dict[str, Any] | None,
+    body: Mapping[str, object] | None,
     timeout: float = 10.0,
     partition: str | None = None,
-) -> dict[str, Any]:
+) -> HubAnswer:
     """Ask the hub's ``fleetdaq/<site>/hub/<what>`` (a JSON request, a JSON reply); one line and
-    exit 2 when no hub answers. With `partition`, through that partition hub's router."""
+    exit 2 when no hub answers. With `partition`, through that partition hub's router.
+    (`ask_hub` gives the values as `object`, for a command that narrows them itself.)"""
     try:
         return ask_hub(config, connect, what, body, timeout, partition)
     except NoAnswer as err:
@@ -261,11 +273,11 @@ def ask_hub(
     config: str,
     connect: tuple[str, ...],
     what: str,
-    body: dict[str, Any] | None,
+    body: Mapping[str, object] | None,
     timeout: float = 10.0,
     partition: str | None = None,
     name_partitions: bool = True,
-) -> dict[str, Any]:
+) -> dict[str, object]:
     """`hub_request`, raising `NoAnswer` instead of exiting. When the main hub of a partitioned
     site does not answer, the line names its partition hubs (unless not `name_partitions`)."""
     import json
@@ -318,7 +330,7 @@ def reads_hub_answer(f: F) -> F:
     import functools
 
     @functools.wraps(f)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
+    def wrapper(*args: object, **kwargs: object) -> object:
         try:
             return f(*args, **kwargs)
         except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:

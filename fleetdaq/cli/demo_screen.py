@@ -12,9 +12,9 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import IO, Any
+from typing import IO
 
-from rich.console import Console, Group
+from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 
@@ -44,7 +44,7 @@ def status_view(
             "red" if e.level >= logging.ERROR else "yellow" if e.level >= logging.WARNING else ""
         )
         events.add_row(format_event(e), style=style)
-    parts: list[Any] = [status_table(view, site, elapsed), alarm_table(view)]
+    parts: list[RenderableType] = [status_table(view, site, elapsed), alarm_table(view)]
     if notes:
         parts.append("\n".join(notes))
     return Group(*parts, events)
@@ -205,7 +205,7 @@ def with_dashboard(
 ) -> SiteConfig:
     """The site with the demo's users file, and `listen` / `foxglove` ("off": none) if given."""
     dash = site.hub.dashboard
-    update: dict[str, Any] = {"users_file": str(users_file)}
+    update: dict[str, object] = {"users_file": str(users_file)}
     if listen == "off":
         update["enabled"] = False
     elif listen:
@@ -239,7 +239,7 @@ def run_demo(
     listen: str | None,
     dashboard: str | None = None,
     foxglove: str | None = None,
-) -> tuple[int, dict[str, Any]]:
+) -> tuple[int, dict[str, object]]:
     """Run until `duration` elapses or `stop` is set; return (exit code, summary).
 
     `dashboard`, `foxglove`: ADDRESS:PORT instead of the site file's, or "off".
@@ -264,7 +264,7 @@ def _run_demo(
     dashboard: str | None,
     foxglove: str | None,
     lock: DataFolderLock,
-) -> tuple[int, dict[str, Any]]:
+) -> tuple[int, dict[str, object]]:
     console = Console(stderr=True)
     if not console.is_terminal:
         console = Console(stderr=True, width=120)

@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import click
 
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from fleetdaq.fleet.ssh import SshOptions
 
 
-def _ssh_options(f: Any) -> Any:
+def _ssh_options(f: click.decorators.FC) -> click.decorators.FC:
     f = click.option(
         "--timeout",
         type=click.FloatRange(min=0.5),

@@ -8,20 +8,19 @@ import json
 import math
 import socket
 import sys
-from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer
+from fleetdaq.cli.common import HubAnswer, fail, hub_options, hub_request, reads_hub_answer
 
 
 def _request(
-    config: str, connect: tuple[str, ...], body: dict[str, Any], timeout: float
-) -> dict[str, Any]:
+    config: str, connect: tuple[str, ...], body: dict[str, object], timeout: float
+) -> HubAnswer:
     return hub_request(config, connect, "out", body, timeout)
 
 
-def _fmt(x: Any) -> str:
+def _fmt(x: object) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
     return f"{x:.6g}" if isinstance(x, float) else str(x)
@@ -81,7 +80,7 @@ _COMMAND_ID = click.option(
 
 @reads_hub_answer
 def _command(
-    config: str, connect: tuple[str, ...], body: dict[str, Any], command_id: str = ""
+    config: str, connect: tuple[str, ...], body: dict[str, object], command_id: str = ""
 ) -> None:
     body = {**body, "user": getpass.getuser(), "host": socket.gethostname()}
     if command_id:

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import click
 
 from fleetdaq.cli.common import fail, load_site
+
+if TYPE_CHECKING:
+    from fleetdaq.certificate_check import CheckReport
 
 
 def _dir_option(f: click.decorators.FC) -> click.decorators.FC:
@@ -264,7 +267,7 @@ def check_certs(
     sys.exit(1 if found.get("problems") or found.get("unchecked") else 0)
 
 
-def _print_checked(found: dict[str, Any]) -> None:
+def _print_checked(found: CheckReport) -> None:
     import datetime as dt
 
     click.echo(f"{found['pki_dir']} (warning {found['warn_days']:g} days before the end)")

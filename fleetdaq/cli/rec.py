@@ -10,15 +10,14 @@ import json
 import socket
 import sys
 from pathlib import Path
-from typing import Any
 
 import click
 
-from fleetdaq.cli.common import fail, hub_options, hub_request, reads_hub_answer
+from fleetdaq.cli.common import HubAnswer, fail, hub_options, hub_request, reads_hub_answer
 from fleetdaq.text import size_text
 
 
-def _show(reply: dict[str, Any]) -> None:
+def _show(reply: HubAnswer) -> None:
     r, s = reply["recorder"], reply.get("snapshots") or {}
     click.echo(f"recorder     {r['state']}")
     click.echo(f"session      {r['session'] or '-'}  ({r['session_dir'] or '-'})")

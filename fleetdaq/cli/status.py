@@ -20,7 +20,6 @@ import json
 import math
 import sys
 import time
-from typing import Any
 
 import click
 
@@ -33,12 +32,12 @@ HEALTH_STALE_NS = 5_000_000_000
 _SEVERITY = {"critical": 0, "major": 1, "minor": 2, "info": 3}
 
 
-def _t(value: Any) -> str:
+def _t(value: object) -> str:
     """Text to print: control characters (escape sequences) replaced."""
     return "".join(c if c.isprintable() else "?" for c in str(value))
 
 
-def _num(value: Any) -> float | None:
+def _num(value: object) -> float | None:
     """A finite number, or None (missing, null for NaN, or not a number)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
@@ -49,20 +48,20 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{value:.0f} %"
 
 
-def _dict(value: Any) -> dict[str, Any]:
+def _dict(value: object) -> dict[str, object]:
     return value if isinstance(value, dict) else {}
 
 
-def _list(value: Any) -> list[Any]:
+def _list(value: object) -> list[object]:
     return value if isinstance(value, list) else []
 
 
-def _dicts(value: Any) -> list[dict[str, Any]]:
+def _dicts(value: object) -> list[dict[str, object]]:
     """A list of JSON objects (anything else in it read as an empty one)."""
     return [_dict(v) for v in _list(value)]
 
 
-def _clock(clock: dict[str, Any]) -> str:
+def _clock(clock: dict[str, object]) -> str:
     if not clock.get("known"):
         return "-"
     text = _t(clock.get("state") or "unknown")
@@ -72,7 +71,7 @@ def _clock(clock: dict[str, Any]) -> str:
     return text
 
 
-def _node_row(row: dict[str, Any], now_ns: int) -> tuple[str, ...]:
+def _node_row(row: dict[str, object], now_ns: int) -> tuple[str, ...]:
     """A node as the hub's read model has it (`NodeView`: node, alive, health, when its health
     came by the hub's clock)."""
     name, alive, health = row.get("node", "?"), bool(row.get("alive")), _dict(row.get("health"))
@@ -104,7 +103,7 @@ def _node_row(row: dict[str, Any], now_ns: int) -> tuple[str, ...]:
     )
 
 
-def _nodes(view: dict[str, Any], now_ns: int) -> list[str]:
+def _nodes(view: dict[str, object], now_ns: int) -> list[str]:
     rows: list[tuple[str, ...]] = [
         ("node", "alive", "version", "up", "cpu", "mem", "disk free", "temp", "clock", "spool")
     ]
@@ -129,7 +128,7 @@ def _nodes(view: dict[str, Any], now_ns: int) -> list[str]:
     return lines
 
 
-def _streams(view: dict[str, Any], now_ns: int) -> list[str]:
+def _streams(view: dict[str, object], now_ns: int) -> list[str]:
     rows = [("stream", "hub", "scans/s", "configured", "batches", "gaps", "lost", "age")]
     streams = _dicts(view.get("streams"))
     for s in sorted(streams, key=lambda s: (str(s.get("node")), str(s.get("stream")))):
@@ -153,7 +152,7 @@ def _streams(view: dict[str, Any], now_ns: int) -> list[str]:
     return text_table(rows, right=frozenset({2, 3, 4, 5, 6, 7}))
 
 
-def _recorder(r: dict[str, Any]) -> str:
+def _recorder(r: dict[str, object]) -> str:
     files = _list(r.get("files"))
     current = _t(r.get("current_file") or "-").rsplit("/", 1)[-1]
     return (
@@ -163,7 +162,7 @@ def _recorder(r: dict[str, Any]) -> str:
     )
 
 
-def _alarms(view: dict[str, Any]) -> list[str]:
+def _alarms(view: dict[str, object]) -> list[str]:
     alarms = [_dict(a) for a in _list(view.get("alarms"))]
     shown = sorted(
         (a for a in alarms if a.get("state") in IN_ALARM),
@@ -189,7 +188,7 @@ def _alarms(view: dict[str, Any]) -> list[str]:
 _LEVELS = {10: "DEBUG", 20: "INFO", 30: "WARNING", 40: "ERROR", 50: "CRITICAL"}
 
 
-def _events(view: dict[str, Any], count: int) -> list[str]:
+def _events(view: dict[str, object], count: int) -> list[str]:
     """The last `count` warnings and errors of the hub's recent events, oldest first."""
     shown = [e for e in _dicts(view.get("recent_events")) if (_num(e.get("level")) or 0) >= 30]
     if count <= 0 or not shown:
@@ -205,7 +204,7 @@ def _events(view: dict[str, Any], count: int) -> list[str]:
     return [*lines, ""]
 
 
-def attention(view: dict[str, Any]) -> list[str]:
+def attention(view: dict[str, object]) -> list[str]:
     """What a person should look at, one line each (empty: all well)."""
     out = []
     for n in _dicts(view.get("nodes")):
@@ -229,7 +228,7 @@ def attention(view: dict[str, Any]) -> list[str]:
     return out
 
 
-def render(view: dict[str, Any], what: str, events: int = 5) -> tuple[list[str], list[str]]:
+def render(view: dict[str, object], what: str, events: int = 5) -> tuple[list[str], list[str]]:
     """The screen for one status answer (with its last `events` warnings and errors), and
     what needs attention."""
     now = int(_num(view.get("time_ns")) or time.time_ns())
@@ -339,7 +338,7 @@ def _partitions_instead(
     its own router (its `listen`), never the main hub's."""
     from concurrent.futures import ThreadPoolExecutor
 
-    def one(name: str) -> dict[str, Any]:
+    def one(name: str) -> dict[str, object]:
         try:
             view = ask_hub(config, (), f"partition/{name}/status", None,
                            timeout=PARTITION_TIMEOUT_S, partition=name)  # fmt: skip

@@ -21,7 +21,7 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.resources import files
-from typing import Any, Final, TypeVar
+from typing import Final, SupportsInt, TypeVar, cast
 
 from fleetdaq.contract.errors import WireError
 
@@ -105,7 +105,7 @@ def parse_msg(name: str, text: str) -> MsgDef:
 
 
 _DEFS: dict[str, MsgDef] = {}
-_CLASSES: dict[str, type[Any]] = {}
+_CLASSES: dict[str, type] = {}
 
 
 def define(name: str, text: str) -> MsgDef:
@@ -194,15 +194,15 @@ def _required(name: str) -> int:
 _REQUIRED: dict[str, int] = {}
 
 
-def type_of(msg: Any) -> str:
-    name: str = type(msg).__ros_type__
+def type_of(msg: object) -> str:
+    name: str = getattr(type(msg), "__ros_type__")  # noqa: B009 (set by `message`)
     return name
 
 
 # --- Encoding ------------------------------------------------------------------------------------
 
 
-def encode(msg: Any) -> bytes:
+def encode(msg: object) -> bytes:
     """Serialise a registered message (little-endian CDR with its encapsulation header)."""
     out = bytearray(ENCAPSULATION)
     _put_message(out, _definition(type_of(msg)), msg)
@@ -221,22 +221,25 @@ def put_string(out: bytearray, s: str) -> None:
     out += raw
 
 
-def _put_value(out: bytearray, kind: str, value: Any) -> None:
+def _put_value(out: bytearray, kind: str, value: object) -> None:
     prim = _PRIMITIVES.get(kind)
     if prim is not None:
         fmt, size = prim
         _pad(out, size)
         try:
-            out += struct.pack("<" + fmt, int(value) if kind == "bool" else value)
+            packed = int(value) if kind == "bool" and isinstance(value, SupportsInt) else value
+            out += struct.pack("<" + fmt, packed)
         except struct.error as err:
             raise ValueError(f"{kind} value {value!r}: {err}") from None
     elif kind == "string":
+        if not isinstance(value, str):
+            raise ValueError(f"string value {value!r} is not a str")
         put_string(out, value)
     else:
         _put_message(out, _definition(kind), value)
 
 
-def _put_message(out: bytearray, d: MsgDef, msg: Any) -> None:
+def _put_message(out: bytearray, d: MsgDef, msg: object) -> None:
     for f in d.fields:
         value = getattr(msg, f.name)
         if f.array:
@@ -310,7 +313,7 @@ def decode(payload: bytes | bytearray | memoryview, cls: type[T]) -> T:
     """Decode a message of type `cls` (registered with `message`). Raises WireError, only."""
     name: str = cls.__ros_type__  # type: ignore[attr-defined]
     r = Reader(payload)
-    msg: T = _get_message(r, _definition(name), appendable=True)
+    msg = cast(T, _get_message(r, _definition(name), appendable=True))
     if r.pos != len(r.buf):
         # Fields are only ever appended (older forms decode, above): bytes after the last one
         # this fleetdaq knows are most likely a newer fleetdaq's form. Refused all the same
@@ -322,7 +325,7 @@ def decode(payload: bytes | bytearray | memoryview, cls: type[T]) -> T:
     return msg
 
 
-def _get_value(r: Reader, kind: str) -> Any:
+def _get_value(r: Reader, kind: str) -> object:
     prim = _PRIMITIVES.get(kind)
     if prim is not None:
         fmt, size = prim
@@ -337,8 +340,8 @@ def _get_value(r: Reader, kind: str) -> Any:
     return _get_message(r, _definition(kind))
 
 
-def _get_message(r: Reader, d: MsgDef, appendable: bool = False) -> Any:
-    values: dict[str, Any] = {}
+def _get_message(r: Reader, d: MsgDef, appendable: bool = False) -> object:
+    values: dict[str, object] = {}
     for i, f in enumerate(d.fields):
         if appendable and r.pos == len(r.buf) and i >= _required(d.name):
             break  # an older form of the message: the fields added since take their defaults

@@ -9,6 +9,7 @@ place (here) into `NodeHealth`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Final
 
 from fleetdaq.contract.cdr import decode, define, encode, load_definition, message, schema_text
@@ -363,20 +364,43 @@ class AlarmState:
     shelved_until_ns: int
 
 
-REFUSALS: Final = (
-    "unknown_output",
-    "not_armed",
-    "out_of_limits",
-    "too_fast",
-    "interlock",
-    "safe_state",
-    "too_old",
-    "not_allowed",
-    "device_error",
-    "timeout",
-)
-"""Why a command can be refused (`timeout`: the hub heard no reply)."""
-ACTIONS: Final = ("set", "pulse", "arm", "disarm", "read")
+class RefusalReason(StrEnum):
+    """Why a command can be refused (`OutputReply.refusal`; `timeout`: the hub heard no
+    reply). The wire carries the value."""
+
+    UNKNOWN_OUTPUT = "unknown_output"
+    NOT_ARMED = "not_armed"
+    OUT_OF_LIMITS = "out_of_limits"
+    TOO_FAST = "too_fast"
+    INTERLOCK = "interlock"
+    SAFE_STATE = "safe_state"
+    TOO_OLD = "too_old"
+    NOT_ALLOWED = "not_allowed"
+    DEVICE_ERROR = "device_error"
+    TIMEOUT = "timeout"
+
+
+class OutputAction(StrEnum):
+    """What an `OutputCommand` asks of an output. The wire carries the value."""
+
+    SET = "set"
+    PULSE = "pulse"
+    ARM = "arm"
+    DISARM = "disarm"
+    READ = "read"
+
+
+class CommandSender(StrEnum):
+    """Who sent an `OutputCommand`: a person, or one of the hub's rules."""
+
+    OPERATOR = "operator"
+    RULE = "rule"
+
+
+REFUSALS: Final = tuple(RefusalReason)
+"""Every `RefusalReason`, in that order."""
+ACTIONS: Final = tuple(OutputAction)
+"""Every `OutputAction`, in that order."""
 
 
 @message("fleetdaq_msgs/msg/OutputCommand")
@@ -396,7 +420,7 @@ class OutputCommand:
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
             raise ValueError(f"unknown action {self.action!r}")
-        if self.sender not in ("operator", "rule"):
+        if self.sender not in tuple(CommandSender):
             raise ValueError(f"unknown sender {self.sender!r}")
         if not self.command_id or len(self.command_id) > 128:
             raise ValueError("a command id is 1 to 128 characters")

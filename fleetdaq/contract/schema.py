@@ -7,7 +7,7 @@ import ipaddress
 import math
 import re
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import (
     AfterValidator,
@@ -28,7 +28,7 @@ RESERVED_STREAM_NAMES = frozenset({"health", "events", "alarms", "commands", "ou
 """Stream names that would collide with a node's own recorded topics (``/<node>/health``...)."""
 
 
-def _no_boolean(value: Any) -> Any:
+def _no_boolean(value: object) -> object:
     # Lax pydantic takes True as 1: `rate_hz: yes` would silently mean 1 Hz.
     if isinstance(value, bool):
         raise ValueError(f"expected a number, got the YAML boolean {str(value).lower()}")
@@ -281,7 +281,7 @@ class SimFault(Strict):
         return self
 
 
-def as_identifier(value: Any) -> Any:
+def as_identifier(value: object) -> object:
     """A serial number written as a bare number in YAML is still an identifier (a string)."""
     return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
 

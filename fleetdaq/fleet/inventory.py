@@ -18,10 +18,9 @@ fleet). Every mistake is one line: ``file: key.path: problem``.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Hashable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import yaml
 
@@ -136,8 +135,10 @@ class Inventory:
 class _UniqueKeyLoader(yaml.SafeLoader):
     """PyYAML keeps the last of two equal keys: two hosts named alike would quietly be one."""
 
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: dict[Any, int] = {}
+    def construct_mapping(
+        self, node: yaml.MappingNode, deep: bool = False
+    ) -> dict[Hashable, object]:
+        seen: dict[str | int, int] = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=True)
             line = key_node.start_mark.line + 1
@@ -159,7 +160,7 @@ class _Group:
     depth: int = 0
     priority: int = 1
     parents: set[str] = field(default_factory=set)
-    vars: dict[str, tuple[Any, str]] = field(default_factory=dict)
+    vars: dict[str, tuple[object, str]] = field(default_factory=dict)
 
 
 @dataclass
@@ -167,7 +168,7 @@ class _HostDef:
     name: str
     where: str
     groups: set[str] = field(default_factory=set)
-    vars: dict[str, tuple[Any, str]] = field(default_factory=dict)
+    vars: dict[str, tuple[object, str]] = field(default_factory=dict)
 
 
 class _Reader:
@@ -181,7 +182,7 @@ class _Reader:
             f"{self.path}: {where}: {problem}" if where else f"{self.path}: {problem}"
         )
 
-    def read(self, doc: Any) -> None:
+    def read(self, doc: object) -> None:
         if doc is None:
             raise self.fail("", "empty inventory (expected `all:` with `children:` hub, edges)")
         if not isinstance(doc, dict):
@@ -189,7 +190,7 @@ class _Reader:
         for name, body in doc.items():
             self.group(str(name), body, str(name), parent=None if name == "all" else "all")
 
-    def group(self, name: str, body: Any, where: str, parent: str | None) -> None:
+    def group(self, name: str, body: object, where: str, parent: str | None) -> None:
         group = self.groups.setdefault(name, _Group(name))
         if parent is not None:
             if name == "all":
@@ -217,7 +218,7 @@ class _Reader:
             for child, child_body in self.mapping(children, f"{where}.children").items():
                 self.group(child, child_body, f"{where}.children.{child}", parent=name)
 
-    def host(self, name: str, host_vars: Any, where: str, group: str) -> None:
+    def host(self, name: str, host_vars: object, where: str, group: str) -> None:
         if re.search(r"\[[^\]]*:[^\]]*\]", name):
             raise self.fail(where, "host ranges are not read here: list each host")
         if re.fullmatch(r"[^:\[\]]+:\d+", name):
@@ -228,7 +229,7 @@ class _Reader:
             for var, value in self.mapping(host_vars, where).items():
                 host.vars[var] = (value, f"{where}.{var}")
 
-    def mapping(self, value: Any, where: str) -> dict[str, Any]:
+    def mapping(self, value: object, where: str) -> dict[str, object]:
         if not isinstance(value, dict):
             raise self.fail(where, f"expected a mapping, got {type(value).__name__}")
         for key in value:
@@ -268,9 +269,9 @@ class _Reader:
                 todo.extend(self.groups[name].parents)
         return out | {"all"}
 
-    def host_vars(self, host: _HostDef) -> tuple[set[str], dict[str, tuple[Any, str]]]:
+    def host_vars(self, host: _HostDef) -> tuple[set[str], dict[str, tuple[object, str]]]:
         groups = self.ancestors(host.groups)
-        merged: dict[str, tuple[Any, str]] = {}
+        merged: dict[str, tuple[object, str]] = {}
         order = sorted(
             (self.groups[g] for g in groups), key=lambda g: (g.depth, g.priority, g.name)
         )
@@ -280,7 +281,7 @@ class _Reader:
         return groups, merged
 
 
-def _text(reader: _Reader, vars_: dict[str, tuple[Any, str]], name: str) -> str | None:
+def _text(reader: _Reader, vars_: dict[str, tuple[object, str]], name: str) -> str | None:
     if name not in vars_:
         return None
     value, where = vars_[name]
@@ -292,7 +293,7 @@ def _text(reader: _Reader, vars_: dict[str, tuple[Any, str]], name: str) -> str 
     return text
 
 
-def _path(reader: _Reader, vars_: dict[str, tuple[Any, str]], name: str) -> str | None:
+def _path(reader: _Reader, vars_: dict[str, tuple[object, str]], name: str) -> str | None:
     text = _text(reader, vars_, name)
     if text is not None and not text.startswith("/"):
         raise reader.fail(vars_[name][1], f"{text!r} is not an absolute path")

@@ -11,12 +11,12 @@ import json
 import shlex
 import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypedDict
 
 import paramiko
 
 from fleetdaq.fleet.errors import CommandTimeout, SshError
-from fleetdaq.fleet.facts import Facts, facts_script, parse_facts
+from fleetdaq.fleet.facts import DirUsage, Facts, Unit, facts_script, parse_facts
 from fleetdaq.fleet.inventory import Host
 from fleetdaq.fleet.layout import HostLayout
 from fleetdaq.fleet.ssh import Connection, SshOptions, connect
@@ -75,21 +75,23 @@ def parse_time(stdout: str, expected: bool) -> TimeView:
 
 def parse_certificates(stdout: str) -> CertificatesView:
     """``fleetdaq pki check --json`` -> `CertificatesView`. Raises ValueError on anything else."""
-    from fleetdaq.certificate_check import STATES
+    from fleetdaq.certificate_check import STATES, CheckReport
     from fleetdaq.runtime.certificate_dates import DAY_NS
 
     try:
-        d: dict[str, Any] = json.loads(stdout)
+        # Unchecked as it comes (another host's fleetdaq wrote it): a field missing or of
+        # another type raises below, and is refused as not a certificate check.
+        d: CheckReport = json.loads(stdout)
         if not d["tls"]:
             return CertificatesView(tls=False)
         now_ns, first = int(d["now_ns"]), int(d["first_not_after_ns"])
         found = d["certificates"]
-        ca: dict[str, Any] = next((c for c in found if c["which"] == "ca"), {})
+        ca = next((c for c in found if c["which"] == "ca"), None)
         return CertificatesView(
             tls=True,
             first_not_after_ns=first,
             days_left=round((first - now_ns) / DAY_NS, 2) if first else None,
-            ca_fingerprint=str(ca.get("fingerprint", "")),
+            ca_fingerprint=str(ca.get("fingerprint", "")) if ca is not None else "",
             worst=max((str(c["state"]) for c in found), key=STATES.index, default="ok"),
             problems=tuple(str(p) for p in d["problems"]),
             unchecked=tuple(str(p) for p in d.get("unchecked", ())),
@@ -114,6 +116,19 @@ def parse_recorder(stdout: str) -> RecorderView:
         raise ValueError(f"not a recorder status: {err}") from err
 
 
+class _Learnt(TypedDict, total=False):
+    """What a probe learnt of a host: the `HostStatus` fields it fills in."""
+
+    uptime_s: float | None
+    systemd: bool | None
+    units: tuple[Unit, ...]
+    dirs: tuple[DirUsage, ...]
+    version: str | None
+    time: TimeView | None
+    certificates: CertificatesView | None
+    recorder: RecorderView | None
+
+
 class _Probe:
     """The steps of one host's probe; each adds what it learnt or the problem it met."""
 
@@ -121,7 +136,7 @@ class _Probe:
         self.host, self.layout, self.conn, self.deadline = host, layout, conn, deadline
         self.problems: list[str] = []
         self.notes: list[str] = []
-        self.fields: dict[str, Any] = {}
+        self.fields: _Learnt = {}
 
     def run(self, *args: str, env: str = "") -> tuple[int, str, str]:
         """`args` on the host; `env`: ``NAME=value ...`` before them (a shell line)."""
@@ -135,7 +150,12 @@ class _Probe:
         r = self.conn.run(facts_script(self.layout), max(0.1, self.deadline - time.monotonic()))
         facts = parse_facts(r.stdout, self.layout)
         self.fields.update(
-            uptime_s=facts.uptime_s, systemd=facts.systemd, units=facts.units, dirs=facts.dirs
+            {
+                "uptime_s": facts.uptime_s,
+                "systemd": facts.systemd,
+                "units": facts.units,
+                "dirs": facts.dirs,
+            }
         )
         if not facts.systemd:
             self.notes.append("no systemd on this host: services not checked")

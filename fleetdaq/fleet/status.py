@@ -4,7 +4,6 @@ what makes a host unhealthy; `notes`: worth saying, not a fault), and the JSON f
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
 
 from fleetdaq.fleet.errors import SshError
 from fleetdaq.fleet.facts import DirUsage, Unit
@@ -91,7 +90,7 @@ class HostStatus:
     def dir(self, role: str) -> DirUsage | None:
         return next((d for d in self.dirs if d.role == role), None)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         spool = self.dir("spool")
         return {
             "host": self.host,
@@ -129,7 +128,7 @@ class FleetStatus:
     def healthy(self) -> bool:
         return not self.problems and all(h.healthy for h in self.hosts)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {
             "healthy": self.healthy,
             "local_version": self.local_version,

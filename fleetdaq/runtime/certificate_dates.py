@@ -15,10 +15,11 @@ from __future__ import annotations
 import datetime as dt
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from fleetdaq.contract.config.site import SiteConfig
+    from fleetdaq.runtime.security import CertificateDates
 
 DAY_NS = 86_400 * 10**9
 
@@ -72,7 +73,11 @@ def when_it_ends(not_after_ns: int, now_ns: int) -> str:
 
 
 def check_dates(
-    node: str, mine: dict[str, Any], ca: dict[str, Any], now_ns: int, days_before: float
+    node: str,
+    mine: CertificateDates,
+    ca: CertificateDates,
+    now_ns: int,
+    days_before: float,
 ) -> tuple[int, list[Note]]:
     """When the first of node `node`'s certificate (`mine`) and the CA ends (UTC ns; 0 when one
     could not be read), and what to say now: an end within `days_before` days is warned of.

@@ -9,7 +9,7 @@ import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import NotRequired, TypedDict
 
 OPERATOR_CN_PREFIX = "operator:"
 """An operator's certificate CN is ``operator:NAME`` (a node's is the node's name)."""
@@ -110,7 +110,17 @@ def operator_tls(pki_dir: Path) -> TlsFiles:
     )
 
 
-def read_certificate(path: Path) -> dict[str, Any]:
+class CertificateDates(TypedDict):
+    """One certificate's name and dates (UTC ns), or why it could not be read (`error`)."""
+
+    path: str
+    cn: NotRequired[str]
+    not_before_ns: NotRequired[int]
+    not_after_ns: NotRequired[int]
+    error: NotRequired[str]
+
+
+def read_certificate(path: Path) -> CertificateDates:
     """``{"path", "cn", "not_before_ns", "not_after_ns"}`` of one PEM certificate (UTC ns), or
     ``{"path", "error"}``."""
     try:

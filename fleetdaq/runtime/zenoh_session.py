@@ -5,14 +5,31 @@ control."""
 from __future__ import annotations
 
 import json
-from typing import Any
+from collections.abc import Mapping
+from typing import Protocol, cast
 
 import zenoh
 
 from fleetdaq.runtime.security import TlsFiles
 
 
-def client_config(endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | None = None) -> Any:
+class Declared(Protocol):
+    """What a session declared and must undeclare: a publisher, subscriber, queryable or
+    liveliness token (zenoh's stubs leave `undeclare` unannotated; through this it is typed)."""
+
+    def undeclare(self) -> None: ...
+
+
+def has_subscribers(pub: zenoh.Publisher) -> bool:
+    """Whether any subscriber matches `pub`'s key now."""
+    # zenoh's stub (1.x) calls `matching_status` a bool; it is a `MatchingStatus`.
+    status = cast(zenoh.MatchingStatus, pub.matching_status)
+    return bool(status.matching)
+
+
+def client_config(
+    endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | None = None
+) -> zenoh.Config:
     """A client session that connects to the hub's router(s) and never scouts.
 
     `timeout_ms` bounds how long opening waits for a router (-1: forever). Once open, the
@@ -33,9 +50,9 @@ def client_config(endpoints: list[str], timeout_ms: int = -1, tls: TlsFiles | No
 def router_config(
     listen: list[str],
     tls: TlsFiles | None = None,
-    acl: dict[str, Any] | None = None,
+    acl: Mapping[str, object] | None = None,
     connect: list[str] | None = None,
-) -> Any:
+) -> zenoh.Config:
     """The hub's router; with `tls`, mutual TLS only (a client without a certificate from the
     site CA is refused), and `acl` as its access control. `connect`: other hubs' routers to
     mesh with (Zenoh retries them in the background and relinks when one returns)."""
@@ -57,14 +74,14 @@ def router_config(
     return conf
 
 
-def _tls(conf: Any, tls: TlsFiles, side: str) -> None:
+def _tls(conf: zenoh.Config, tls: TlsFiles, side: str) -> None:
     conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tls.ca)))
     conf.insert_json5("transport/link/tls/enable_mtls", "true")
     conf.insert_json5(f"transport/link/tls/{side}_certificate", json.dumps(str(tls.cert)))
     conf.insert_json5(f"transport/link/tls/{side}_private_key", json.dumps(str(tls.key)))
 
 
-def _no_shared_memory(conf: Any) -> None:
+def _no_shared_memory(conf: zenoh.Config) -> None:
     # Zenoh's shared-memory transport creates POSIX shm segments lazily; where that fails (a
     # full disk, a file-size limit) it panics inside a reply. fleetdaq's links are TCP between
     # machines: shared memory would only ever help two processes on one host.

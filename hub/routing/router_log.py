@@ -364,7 +364,7 @@ class _ProcessLog:
         os.environ["RUST_LOG"] = ",".join([user or "off", *DIRECTIVES])
         os.environ["NO_COLOR"] = "1"  # plain lines into the pipe
         try:
-            zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
+            zenoh.try_init_log_from_env()
         finally:
             for k, v in saved.items():
                 if v is None:

@@ -31,7 +31,7 @@ from fleetdaq.runtime.certificate_dates import (
     warn_days,
     when_it_ends,
 )
-from fleetdaq.runtime.security import read_certificate
+from fleetdaq.runtime.security import CertificateDates, read_certificate
 
 CHECK_PERIOD_S = 3600.0
 TELL_EVERY_S = 86400.0
@@ -102,7 +102,7 @@ class CertificateWatch(Periodic):
         return found
 
     def _tell(
-        self, which: str, level: int, text: str, cert: dict[str, Any], **fields: object
+        self, which: str, level: int, text: str, cert: CertificateDates, **fields: object
     ) -> None:
         last = self._told.get(which)
         now = time.monotonic()
