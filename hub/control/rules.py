@@ -20,7 +20,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -211,9 +211,12 @@ class RuleEngine:
         snapshot: Callable[[], HubView],
         record: Callable[[str, str], str] | None = None,
         interlocks: Interlocks | None = None,
+        also_from: Sequence[BatchFeed] = (),
     ) -> None:
         """`record(action, who)` starts, stops or splits the recording (returns a result).
-        `interlocks`: the states the command service checks (`Interlocks.blocked`)."""
+        `interlocks`: the states the command service checks (`Interlocks.blocked`).
+        `also_from`: feeds of batches the recorder never takes (a partition's watched streams:
+        `fleetdaq.hub.partitions.live`), evaluated on the same thread."""
         self.router = router
         self.site = site
         self.keys = SiteKeys(site.site)
@@ -243,6 +246,8 @@ class RuleEngine:
                 self.by_stream.setdefault((leaf.node, leaf.stream), []).append((col, leaf))
         self.lock = threading.Lock()
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
+        for other in also_from:
+            other.attach(self._consumer)
         self._pool = ThreadPoolExecutor(
             max_workers=4, thread_name_prefix="rule-actions", initializer=name_os_thread
         )
@@ -261,11 +266,6 @@ class RuleEngine:
                 out.append(r.precondition)
         out += [i.when for i in self.interlocks]
         return out
-
-    def also_from(self, feed: BatchFeed) -> None:
-        """Also evaluate the batches of `feed` (a partition's watched streams, which the main
-        hub's recorder never takes: `fleetdaq.hub.partitions.live`), on the same thread."""
-        feed.attach(self._consumer)
 
     # --- lifecycle ------------------------------------------------------------------------------
 
