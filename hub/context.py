@@ -12,10 +12,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fleetdaq.contract.config.site import SiteConfig
-from fleetdaq.contract.keys import SiteKeys
+from fleetdaq.contract.keys import HUB, SiteKeys
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.routing.router import Router
+
+
+def event_node(partition: str | None) -> str:
+    """The `node` of a hub's own events and health: ``hub``, a partition hub's ``hub/<name>``."""
+    return HUB if partition is None else f"{HUB}/{partition}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,5 +63,6 @@ class HubContext:
     """The partition hub this is (`hub.partitions.<name>`); None: the main hub."""
 
     @property
-    def is_partition(self) -> bool:
-        return self.partition is not None
+    def event_node(self) -> str:
+        """The `node` of this hub's own events and health (`event_node`)."""
+        return event_node(self.partition)
