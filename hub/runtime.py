@@ -31,7 +31,7 @@ import logging
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.hub.composition import ComposedHub, compose, open_context
@@ -82,7 +82,7 @@ class _Runtime:
         self.systemd = Systemd()
         """systemd's READY, STATUS and watchdog (the recorder's writer must keep moving)."""
 
-    def __enter__(self) -> _Runtime:
+    def __enter__(self) -> Self:
         self.start()
         return self
 
@@ -103,6 +103,7 @@ class _Runtime:
         self._started(session.name, session.dir)
 
     def _started(self, session: str, folder: Path) -> None:
+        """The hub's ``started`` event and log line, once every service runs."""
         raise NotImplementedError
 
     def status_line(self) -> str:
@@ -173,10 +174,6 @@ class HubRuntime(_Runtime):
         self.partition_recorders = fleet.recorders if fleet is not None else None
         self.snapshot_triggers = fleet.triggers if fleet is not None else None
         self.partition_live = hub.partition_live
-
-    def __enter__(self) -> HubRuntime:
-        self.start()
-        return self
 
     def _started(self, session: str, folder: Path) -> None:
         self.bus.emit(
@@ -254,10 +251,6 @@ class PartitionRuntime(_Runtime):
         assert own is not None
         self.report = own.report
         self.snapshot_requests = own.snapshot_requests
-
-    def __enter__(self) -> PartitionRuntime:
-        self.start()
-        return self
 
     def _started(self, session: str, folder: Path) -> None:
         self.bus.emit(

@@ -59,7 +59,6 @@ def parse_answer(raw: bytes) -> dict[str, Any]:
     return out
 
 
-
 class PartitionRecorders:
     """The main hub's side: one recorder request to every partition hub at once."""
 
