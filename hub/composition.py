@@ -2,9 +2,8 @@
 factories, wired to each other here and nowhere else, and put in start order.
 
 The main hub and a partition hub are composed by the same `compose`; what differs is said in
-two places only, both here: which wings a hub runs (`compose`: a partition hub runs no alarms,
-notifier, rules, commands, live plots, Foxglove or dashboard, and in their place its report to
-the main hub and the snapshot triggers it takes) and the start order (`_start_order`).
+two places only, both here: which parts a hub runs (`HubShape`: `MAIN_HUB`, `PARTITION_HUB`)
+and the start order (`_start_order`).
 
 Each service gets what it needs of another wing through its constructor (a callable, or an
 object typed by a small protocol); none sets another's attributes. Two pairs need each other:
@@ -95,6 +94,36 @@ def open_context(
     return ctx, refused
 
 
+@dataclass(frozen=True, slots=True)
+class HubShape:
+    """Which parts a hub runs: where the main hub and a partition hub differ. Every hub runs
+    the router, the bus, events.log, the recorder (and its snapshot buffer if the site keeps
+    one), the node watch of its nodes, its own health and certificates, recorder requests and
+    the status request."""
+
+    whole_fleet: bool
+    """The fleet's time view and the heartbeat every edge's dead-man hears (nodes wing)."""
+    alarms: bool
+    """The supervisor, alarm requests and the e-mail notifier (supervision wing)."""
+    control: bool
+    """Commands, rules and the hub's interlocks (control wing): outputs are the main hub's."""
+    viewers: bool
+    """Live plots, Foxglove and the dashboard (live wing)."""
+    partitions: bool
+    """On a partitioned site, the view of the partition hubs: their reports, recorder requests
+    passed on, snapshot triggers, their streams while watched (partitions wing)."""
+    own_report: bool
+    """This hub's report to the main hub and the snapshot triggers it takes: a partition hub."""
+
+
+MAIN_HUB = HubShape(
+    whole_fleet=True, alarms=True, control=True, viewers=True, partitions=True, own_report=False
+)
+PARTITION_HUB = HubShape(
+    whole_fleet=False, alarms=False, control=False, viewers=False, partitions=False, own_report=True
+)
+
+
 class RecordActions:
     """A rule's ``record:`` action on the main hub: start, stop and split reach every partition
     hub too (passed on, not waited for); a snapshot reaches them by its trigger."""
@@ -130,6 +159,7 @@ class ComposedHub:
     """Every service of one hub, by wing, and the order they start in."""
 
     ctx: HubContext
+    shape: HubShape
     claim: DataFolderClaim
     intake: NodeIntake
     event_log: EventLog
@@ -160,29 +190,34 @@ def compose(
     hub's when `ctx.partition` is set). `view`: the hub's read model with its runtime's parts
     (failures, bus and snapshot counters). `lock_owned`: False when the caller took the data
     folder's lock itself. `keep_plots`: keep the live plots without the dashboard."""
-    main = ctx.partition is None
+    shape = MAIN_HUB if ctx.partition is None else PARTITION_HUB
 
     def log_sync() -> bool:  # made before the event log, called only once it runs
         return event_log.sync()
 
     intake = nodes.intake(ctx, log_sync)
     event_log = supervision.event_log(ctx, intake.events)
-    fleet = partitions.fleet(ctx)
+    fleet = partitions.fleet(ctx) if shape.partitions else None
     rec = recording.build(
         ctx,
         intake.refused,
         intake.events,
         on_trigger=fleet.triggers.send if fleet is not None and fleet.triggers else None,
     )
-    node_wing = nodes.build(ctx, intake, rec.recorder)
-    own = None if main else partitions.own(ctx, rec.snapshots)
+    node_wing = nodes.build(ctx, intake, rec.recorder, shape.whole_fleet)
+    own = partitions.own(ctx, rec.snapshots) if shape.own_report else None
     live_wing = live.build(
-        ctx, rec.feed, view, keep_plots, status_key=own.status_key if own is not None else None
+        ctx,
+        rec.feed,
+        view,
+        shape.viewers,
+        keep_plots,
+        status_key=own.status_key if own is not None else None,
     )
-    remote = partitions.live(ctx, live_wing.plots, live_wing.foxglove)
+    remote = partitions.live(ctx, live_wing.plots, live_wing.foxglove) if shape.partitions else None
     # Only the streams the alarms, rules and interlocks watch: `PartitionLive.supervised`.
     watched = [remote.supervised] if remote is not None and remote.watched else []
-    sup = supervision.build(ctx, rec.recorder, rec.feed, view, also_from=watched)
+    sup = supervision.build(ctx, rec.recorder, rec.feed, view, shape.alarms, also_from=watched)
     others = fleet.recorders if fleet is not None else None
     ctl = (
         control.build(
@@ -193,25 +228,25 @@ def compose(
             RecordActions(rec.recorder, rec.snapshots, others),
             also_from=watched,
         )
-        if main
+        if shape.control
         else None
     )
     requests = recording.requests(
         ctx, rec, view, key=own.recorder_key if own is not None else None, others=others
     )
     dashboard = None
-    if sup.alarms is not None and ctl is not None:
+    if shape.viewers and sup.alarms is not None and ctl is not None:
         dashboard = live.dashboard(
             ctx, live_wing, view, sup.alarms.requests, ctl.commands, requests
         )
     places = [Place(ctx.paths.events_log, "events.log")]
-    if main:
+    if shape.alarms:
         if ctx.site.hub.notify.smtp is not None:
             places.append(Place(ctx.paths.outbox, "the e-mail outbox", folder=True))
         places.append(Place(ctx.paths.alarm_journal, "the alarm journal"))
     claim = DataFolderClaim(lock, places, owned=lock_owned)
     hub = ComposedHub(
-        ctx, claim, intake, event_log, rec, node_wing, sup, live_wing, requests, ctl, fleet,
+        ctx, shape, claim, intake, event_log, rec, node_wing, sup, live_wing, requests, ctl, fleet,
         remote, own, dashboard, services=[],
     )  # fmt: skip
     hub.services.extend(_start_order(hub))
@@ -226,7 +261,8 @@ def _start_order(h: ComposedHub) -> list[Service]:
     """The order the hub's services start in (they stop in reverse); hub/runtime.py's docstring
     says why. Add a new service to the list of the hub that runs it."""
     rec, sup, live_wing = h.recording, h.supervision, h.live
-    if h.own is not None:  # a partition hub
+    if h.shape is PARTITION_HUB:
+        assert h.own is not None
         return [
             h.claim,  # before any port or file: one hub per data folder
             h.ctx.router,

@@ -29,14 +29,16 @@ def build(
     ctx: HubContext,
     feed: BatchFeed,
     view: Callable[[], HubView],
+    viewers: bool,
     keep_plots: bool = False,
     status_key: str | None = None,
 ) -> LiveWing:
-    """`keep_plots`: keep the plots' buffers even without the dashboard. `status_key`: a
+    """`viewers`: also the live plots (if shown) and Foxglove (if enabled): the main hub.
+    `keep_plots`: keep the plots' buffers even without the dashboard. `status_key`: a
     partition hub's own (None: ``hub/status``)."""
     site = ctx.site
     status = StatusService(ctx.router, ctx.keys, view, site.security, key=status_key)
-    if ctx.partition is not None:
+    if not viewers:
         return LiveWing(status, None, [])
     # Filling the plots costs every batch of every stream (a quarter of the hub's CPU with
     # a hundred small edges): only when something shows them.

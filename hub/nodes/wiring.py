@@ -33,7 +33,7 @@ class NodesWing:
     fleet: FleetTimeService | None
     """The main hub's only (the whole fleet's time)."""
     heartbeat: Heartbeat | None
-    """The main hub's only (outputs and their dead-man are the main hub's)."""
+    """The main hub's only (outputs, and so their dead-man, are the main hub's)."""
 
 
 def intake(ctx: HubContext, log_sync: Callable[[], bool]) -> NodeIntake:
@@ -42,9 +42,9 @@ def intake(ctx: HubContext, log_sync: Callable[[], bool]) -> NodeIntake:
     return NodeIntake(RefusedKeys(ctx.bus, ctx.model), EventDelivery(recorded, log_sync=log_sync))
 
 
-def build(ctx: HubContext, intake: NodeIntake, recorder: Recorder) -> NodesWing:
-    main = ctx.partition is None
-    fleet = FleetTimeService(ctx.bus, ctx.model) if main else None
+def build(ctx: HubContext, intake: NodeIntake, recorder: Recorder, whole_fleet: bool) -> NodesWing:
+    """`whole_fleet`: also the fleet's time view and the heartbeat (the main hub)."""
+    fleet = FleetTimeService(ctx.bus, ctx.model) if whole_fleet else None
     watch = NodeWatch(
         ctx.router,
         ctx.site,
@@ -62,5 +62,5 @@ def build(ctx: HubContext, intake: NodeIntake, recorder: Recorder) -> NodesWing:
         s = recorder.session
         return s.name if s is not None else ""
 
-    heartbeat = Heartbeat(ctx.router, ctx.keys, session_name) if main else None
+    heartbeat = Heartbeat(ctx.router, ctx.keys, session_name) if whole_fleet else None
     return NodesWing(watch, fleet, heartbeat)

@@ -43,7 +43,7 @@ class OwnPartition:
 def fleet(ctx: HubContext) -> Partitions | None:
     """The main hub's, or None on a site without partitions."""
     site = ctx.site
-    if ctx.partition is not None or not site.hub.partitions:
+    if not site.hub.partitions:
         return None
     recorders = PartitionRecorders(
         ctx.router,
@@ -68,7 +68,7 @@ def live(
     watch; None when nothing here could want one."""
     site = ctx.site
     watched = site.watched_partition_streams()
-    if ctx.partition is not None or not site.hub.partitions:
+    if not site.hub.partitions:
         return None
     if plots is None and not foxglove and not watched:
         return None

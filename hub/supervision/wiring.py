@@ -47,9 +47,11 @@ def build(
     recorder: Recorder,
     feed: BatchFeed,
     view: Callable[[], HubView],
+    alarms: bool,
     also_from: Sequence[BatchFeed] = (),
 ) -> SupervisionWing:
-    """`also_from`: batches the recorder never takes that the alarms watch (a partition's)."""
+    """`alarms`: also the alarms and the notifier (the main hub). `also_from`: batches the
+    recorder never takes that the alarms watch (a partition's)."""
     site = ctx.site
     certificates = (
         CertificateWatch(site, ctx.model, ctx.bus, ctx.partition) if site.security.tls else None
@@ -61,20 +63,19 @@ def build(
         node=ctx.event_node,
         certificates=certificates,
     )
-    alarms = None
-    if ctx.partition is None:
-        notifier = EmailNotifier(site.hub.notify, site.site, ctx.paths.outbox, ctx.bus, ctx.model)
-        supervisor = Supervisor(
-            site,
-            ctx.bus,
-            ctx.model,
-            recorder,
-            feed,
-            ctx.paths.alarm_journal,
-            notifier=notifier,
-            snapshot=view,
-            also_from=also_from,
-        )
-        requests = AlarmRequests(ctx.router, ctx.keys, supervisor, site.security)
-        alarms = Alarms(notifier, supervisor, requests)
-    return SupervisionWing(certificates, hub_health, alarms)
+    if not alarms:
+        return SupervisionWing(certificates, hub_health, None)
+    notifier = EmailNotifier(site.hub.notify, site.site, ctx.paths.outbox, ctx.bus, ctx.model)
+    supervisor = Supervisor(
+        site,
+        ctx.bus,
+        ctx.model,
+        recorder,
+        feed,
+        ctx.paths.alarm_journal,
+        notifier=notifier,
+        snapshot=view,
+        also_from=also_from,
+    )
+    requests = AlarmRequests(ctx.router, ctx.keys, supervisor, site.security)
+    return SupervisionWing(certificates, hub_health, Alarms(notifier, supervisor, requests))
