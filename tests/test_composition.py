@@ -10,7 +10,6 @@ from pathlib import Path
 
 from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.config.site import SiteConfig
-from fleetdaq.hub.composition import MAIN_HUB, PARTITION_HUB
 from fleetdaq.hub.runtime import HubRuntime, PartitionRuntime
 
 SITE = """
@@ -77,12 +76,6 @@ def test_a_hub_alone_runs_no_partition_viewer_or_snapshot_parts(tmp_path: Path):
         "fleet-time", "hub-health", "supervisor", "alarm-requests", "commands", "rules",
         "recorder-requests", "heartbeat", "status",
     ]  # fmt: skip
-
-
-def test_the_shapes_say_where_the_main_and_a_partition_hub_differ():
-    assert MAIN_HUB.alarms and MAIN_HUB.control and MAIN_HUB.viewers
-    assert not (PARTITION_HUB.alarms or PARTITION_HUB.control or PARTITION_HUB.viewers)
-    assert PARTITION_HUB.own_report and not MAIN_HUB.own_report
 
 
 def test_the_interlock_the_rules_set_is_the_one_the_command_service_checks(tmp_path: Path):
