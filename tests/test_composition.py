@@ -52,7 +52,7 @@ def _names(runtime: HubRuntime | PartitionRuntime) -> list[str]:
     return [s.name for s in runtime.services.services]
 
 
-def test_the_main_hub_starts_its_services_in_the_order_its_docstring_gives(tmp_path: Path):
+def test_the_main_hub_starts_its_services_in_the_order_its_docstring_gives(tmp_path: Path) -> None:
     # The order before the composition root was written, checked against that commit.
     assert _names(HubRuntime(_site(), tmp_path)) == [
         "data-folder", "router", "event-bus", "event-log", "notifier", "recorder", "node-watch",
@@ -62,7 +62,7 @@ def test_the_main_hub_starts_its_services_in_the_order_its_docstring_gives(tmp_p
     ]  # fmt: skip
 
 
-def test_a_partition_hub_runs_the_parts_of_its_slice_only_in_their_order(tmp_path: Path):
+def test_a_partition_hub_runs_the_parts_of_its_slice_only_in_their_order(tmp_path: Path) -> None:
     assert _names(PartitionRuntime(_site(), "bay2", tmp_path)) == [
         "data-folder", "router", "event-bus", "event-log", "recorder", "snapshots",
         "partition-snapshots", "node-watch", "hub-health", "partition-report",
@@ -70,7 +70,7 @@ def test_a_partition_hub_runs_the_parts_of_its_slice_only_in_their_order(tmp_pat
     ]  # fmt: skip
 
 
-def test_a_hub_alone_runs_no_partition_viewer_or_snapshot_parts(tmp_path: Path):
+def test_a_hub_alone_runs_no_partition_viewer_or_snapshot_parts(tmp_path: Path) -> None:
     assert _names(HubRuntime(_site(ALONE), tmp_path)) == [
         "data-folder", "router", "event-bus", "event-log", "notifier", "recorder", "node-watch",
         "fleet-time", "hub-health", "supervisor", "alarm-requests", "commands", "rules",
@@ -78,7 +78,7 @@ def test_a_hub_alone_runs_no_partition_viewer_or_snapshot_parts(tmp_path: Path):
     ]  # fmt: skip
 
 
-def test_the_interlock_the_rules_set_is_the_one_the_command_service_checks(tmp_path: Path):
+def test_the_interlock_the_rules_set_is_the_one_the_command_service_checks(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
     assert hub.commands.blocked("pier", "lamp") is None
     (lock,) = hub.rules.interlocks
@@ -87,7 +87,7 @@ def test_the_interlock_the_rules_set_is_the_one_the_command_service_checks(tmp_p
     assert hub.commands.blocked("pier", "beacon") is None
 
 
-def test_the_recorder_hands_the_snapshot_buffer_what_it_takes(tmp_path: Path):
+def test_the_recorder_hands_the_snapshot_buffer_what_it_takes(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
     assert hub.snapshots is not None
     tap = hub.recorder.tap  # called on the recorder's writer thread for every message it takes
@@ -97,7 +97,7 @@ def test_the_recorder_hands_the_snapshot_buffer_what_it_takes(tmp_path: Path):
     assert hub.snapshots.counters()["held_messages"] == 1
 
 
-def test_the_nodes_spooled_events_are_acked_through_the_event_logs_fsync(tmp_path: Path):
+def test_the_nodes_spooled_events_are_acked_through_the_event_logs_fsync(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
     delivery = hub.event_log.delivery
     assert delivery is not None
@@ -111,7 +111,7 @@ def test_the_nodes_spooled_events_are_acked_through_the_event_logs_fsync(tmp_pat
         hub.event_log.stop()
 
 
-def test_the_main_hubs_snapshot_triggers_reach_the_partitions_sender(tmp_path: Path):
+def test_the_main_hubs_snapshot_triggers_reach_the_partitions_sender(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
     assert hub.snapshots is not None
     assert hub.snapshot_triggers is not None
