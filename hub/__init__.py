@@ -1,5 +1,6 @@
 """The fleetdaq hub. Its root holds the runtime and what every wing shares: the runtime and
-composition (`runtime`), the service lifecycle (`services`, `periodic`), the in-process bus
+composition (`runtime`; `composition` builds every service from one `context`, each wing's
+through its factory, ``<wing>.wiring``), the service lifecycle (`services`, `periodic`), the in-process bus
 (`bus`), the read model (`read_model`), operators' requests over Zenoh (`requests`), compiled
 loops (`jit`), the error tree (`errors`) and the hub's own config (`config`).
 
