@@ -200,6 +200,6 @@ nodes:
 """,
         "p.yaml",
     )
-    parts = HubRuntime(site, tmp_path).recorder_requests.partitions  # built, not started
+    parts = HubRuntime(site, tmp_path).partition_recorders  # built, not started
     assert parts is not None
     assert parts.snapshots_off == {"bay2"}

@@ -151,11 +151,16 @@ def test_the_buffer_tells_of_every_request_and_alarm_and_takes_remote_ones_as_it
 
     site = parse_config(SITE.format(port=1, seconds=60, max_bytes=1 << 30), "<test>")
     recording = [True]
-    snap = SnapshotBuffer(
-        site, tmp_path, EventBus(), ReadModel("snap"), BatchFeed(), lambda: recording[0]
-    )
     told: list[dict[str, str]] = []
-    snap.on_trigger = told.append
+    snap = SnapshotBuffer(
+        site,
+        tmp_path,
+        EventBus(),
+        ReadModel("snap"),
+        BatchFeed(),
+        lambda: recording[0],
+        on_trigger=told.append,
+    )
     snap.start()
     try:
         assert snap.snapshot("ann@desk", "before the storm")[0] is False  # nothing held yet

@@ -72,9 +72,8 @@ def hub(
     setup_logging(verbose)
     from fleetdaq.hub.errors import HubError, RouterError, SecretError
     from fleetdaq.hub.live.web.users import UsersFileError
-    from fleetdaq.hub.partitions.runtime import PartitionRuntime
     from fleetdaq.hub.recording.data_lock import DataFolderInUse
-    from fleetdaq.hub.runtime import HubRuntime
+    from fleetdaq.hub.runtime import HubRuntime, PartitionRuntime
     from fleetdaq.runtime.writable import UnwritablePlace
 
     check_tls(config, site, "hub", partition)

@@ -74,7 +74,10 @@ class CommandService:
         recorder: Recorder,
         snapshot: Callable[[], HubView],
         timeout_s: float = 5.0,
+        blocked: Blocked | None = None,
     ) -> None:
+        """`blocked`: the hub's cross-node interlocks (`fleetdaq.hub.control.rules.Interlocks`);
+        None: none."""
         self.router = router
         self.site = site
         self.keys = SiteKeys(site.site)
@@ -83,8 +86,7 @@ class CommandService:
         self.recorder = recorder
         self.snapshot = snapshot
         self.timeout_s = timeout_s
-        self.blocked: Blocked = lambda node, output: None
-        """Set by the rules engine: the hub's cross-node interlocks."""
+        self.blocked: Blocked = blocked or (lambda node, output: None)
         self.sent = 0
         self.applied = 0
         self.refused = 0

@@ -20,7 +20,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -177,6 +177,26 @@ class InterlockState:
     trips: int = 0
 
 
+class Interlocks:
+    """The hub's cross-node interlocks (`hub.interlocks`) and whether each holds now: the rules
+    engine evaluates them and the command service asks `blocked` before it sends. The
+    composition root makes one and hands it to both."""
+
+    def __init__(self, site: SiteConfig) -> None:
+        self.states = [
+            InterlockState(name, lock, Tree(lock.when))
+            for name, lock in site.hub.interlocks.items()
+        ]
+
+    def blocked(self, node: str, output: str) -> str | None:
+        """The hub interlock holding `node/output`, if one is active."""
+        ref = f"{node}/{output}"
+        for lock in self.states:
+            if lock.active and ref in lock.cfg.outputs:
+                return lock.name
+        return None
+
+
 class RuleEngine:
     name = "rules"
 
@@ -190,8 +210,13 @@ class RuleEngine:
         commands: CommandService,
         snapshot: Callable[[], HubView],
         record: Callable[[str, str], str] | None = None,
+        interlocks: Interlocks | None = None,
+        also_from: Sequence[BatchFeed] = (),
     ) -> None:
-        """`record(action, who)` starts, stops or splits the recording (returns a result)."""
+        """`record(action, who)` starts, stops or splits the recording (returns a result).
+        `interlocks`: the states the command service checks (`Interlocks.blocked`).
+        `also_from`: feeds of batches the recorder never takes (a partition's watched streams:
+        `fleetdaq.hub.partitions.live`), evaluated on the same thread."""
         self.router = router
         self.site = site
         self.keys = SiteKeys(site.site)
@@ -211,19 +236,18 @@ class RuleEngine:
             )
             for name, r in site.rules.items()
         ]
-        self.interlocks = [
-            InterlockState(name, lock, Tree(lock.when))
-            for name, lock in site.hub.interlocks.items()
-        ]
+        self._interlocks = interlocks or Interlocks(site)
+        self.interlocks = self._interlocks.states
         self.by_stream: dict[tuple[str, str], list[tuple[int, ChannelLeaf]]] = {}
         for tree in self._trees():
             for leaf in tree.leaves.values():
                 names = [c.name for c in site.nodes[leaf.node].streams[leaf.stream].channels]
                 col = names.index(leaf.channel)
                 self.by_stream.setdefault((leaf.node, leaf.stream), []).append((col, leaf))
-        commands.blocked = self.blocked
         self.lock = threading.Lock()
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
+        for other in also_from:
+            other.attach(self._consumer)
         self._pool = ThreadPoolExecutor(
             max_workers=4, thread_name_prefix="rule-actions", initializer=name_os_thread
         )
@@ -242,11 +266,6 @@ class RuleEngine:
                 out.append(r.precondition)
         out += [i.when for i in self.interlocks]
         return out
-
-    def also_from(self, feed: BatchFeed) -> None:
-        """Also evaluate the batches of `feed` (a partition's watched streams, which the main
-        hub's recorder never takes: `fleetdaq.hub.partitions.live`), on the same thread."""
-        feed.attach(self._consumer)
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -412,13 +431,8 @@ class RuleEngine:
             )  # fmt: skip
 
     def blocked(self, node: str, output: str) -> str | None:
-        """The hub interlock holding `node/output`, if one is active (the command service
-        asks before it sends)."""
-        ref = f"{node}/{output}"
-        for lock in self.interlocks:
-            if lock.active and ref in lock.cfg.outputs:
-                return lock.name
-        return None
+        """The hub interlock holding `node/output`, if one is active."""
+        return self._interlocks.blocked(node, output)
 
     # --- what others see ----------------------------------------------------------------------
 

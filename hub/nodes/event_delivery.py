@@ -71,16 +71,17 @@ class EventDelivery:
         acking: frozenset[str] | set[str],
         stall_s: float = STALL_S,
         clock: Callable[[], float] = time.monotonic,
+        log_sync: Callable[[], bool] | None = None,
     ) -> None:
-        """`acking`: the nodes this hub records, and so acks. `clock`: monotonic seconds."""
+        """`acking`: the nodes this hub records, and so acks. `clock`: monotonic seconds.
+        `log_sync`: the event log's fsync (`fleetdaq.hub.supervision.event_log.EventLog.sync`)."""
         self.acking = frozenset(acking)
         self.stall_s = stall_s
         self._clock = clock
         self.duplicates = 0
         self.rewinds = 0
-        self.log_sync: Callable[[], bool] | None = None
-        """Makes what events.log wrote durable (its fsync; False if that failed); set by the
-        event log."""
+        self.log_sync = log_sync
+        """Makes what events.log wrote durable (its fsync; False if that failed)."""
         self._nodes: dict[str, _NodeEvents] = {}
         self._lock = threading.Lock()
 

@@ -22,7 +22,6 @@ from typing import Any
 
 from fleetdaq.contract.messages import Event, NodeHealth
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.nodes.watch import NodeWatch
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.ptp.status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
 
@@ -306,15 +305,14 @@ class FleetTime:
 
 
 class FleetTimeService:
-    """The fleet's time view as a hub service: fed by the node watch and the event bus,
-    published in the read model as ``fleet``."""
+    """The fleet's time view as a hub service: fed by the node watch (`fleet.update` and
+    `fleet.on_alive`, its listeners) and the event bus, published in the read model as
+    ``fleet``."""
 
     name = "fleet-time"
 
-    def __init__(self, bus: EventBus, model: ReadModel, nodes: NodeWatch) -> None:
+    def __init__(self, bus: EventBus, model: ReadModel) -> None:
         self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put("fleet", v.to_dict()))
-        nodes.health_listeners.append(self.fleet.update)
-        nodes.alive_listeners.append(self.fleet.on_alive)
         self._sub = bus.subscribe(self.name, self.fleet.on_event)
 
     def start(self) -> None:

@@ -27,7 +27,7 @@ from fleetdaq.contract.keys import Kind, SiteKeys
 from fleetdaq.contract.messages import NODE_HEALTH_TYPE, Event, NodeHealth
 from fleetdaq.contract.wire import decode_event_mark, plausible_time
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.nodes.event_delivery import Verdict
+from fleetdaq.hub.nodes.event_delivery import EventDelivery, Verdict
 from fleetdaq.hub.nodes.refused import RefusedKeys
 from fleetdaq.hub.read_model import NodeView, ReadModel
 from fleetdaq.hub.recording.recorder import Recorder
@@ -75,12 +75,16 @@ class NodeWatch:
         model: ReadModel,
         recorder: Recorder,
         refused: RefusedKeys,
+        events: EventDelivery,
         events_per_s: float = 200.0,
         event_burst: float = 2000.0,
         partition: str | None = None,
+        health_listeners: list[HealthListener] | None = None,
+        alive_listeners: list[AliveListener] | None = None,
     ) -> None:
         """`partition`: a partition hub watches only its own nodes (each by name, so nothing of
-        the others crosses the mesh); the main hub (None) watches the whole fleet."""
+        the others crosses the mesh); the main hub (None) watches the whole fleet. `events`: the
+        order, dedup and acks of the nodes' spooled events (the recorder's too)."""
         self.router = router
         self.keys = SiteKeys(site.site)
         self.partition = partition
@@ -89,10 +93,11 @@ class NodeWatch:
         self.model = model
         self.recorder = recorder
         self.refused = refused
-        self.health_listeners: list[HealthListener] = []
+        self.events = events
+        self.health_listeners: list[HealthListener] = list(health_listeners or [])
         """Called with (node, health) for every valid health message, on a Zenoh thread:
         must not block."""
-        self.alive_listeners: list[AliveListener] = []
+        self.alive_listeners: list[AliveListener] = list(alive_listeners or [])
         """Called with (node, alive) when a node's liveliness token appears or goes."""
         self._alive: dict[str, bool] = dict.fromkeys(sorted(self.known), False)
         self._health: dict[str, tuple[NodeHealth, int]] = {}
@@ -252,7 +257,7 @@ class NodeWatch:
         if floor > seq:
             self._bad(node, "event", f"floor {floor} above its own sequence {seq}")
             return
-        offer = self.recorder.event_delivery.offer(node, seq, floor, epoch, event, self.bus.publish)
+        offer = self.events.offer(node, seq, floor, epoch, event, self.bus.publish)
         if offer.lost:
             self.bus.emit(
                 logging.ERROR,

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from fleetdaq.contract.config.site import SiteConfig
@@ -60,7 +60,15 @@ class _Remote:
 class PartitionLive:
     name = "partition-live"
 
-    def __init__(self, router: Router, site: SiteConfig, bus: EventBus) -> None:
+    def __init__(
+        self,
+        router: Router,
+        site: SiteConfig,
+        bus: EventBus,
+        plots: LivePlots | None = None,
+        foxglove: Sequence[FoxgloveLive] = (),
+    ) -> None:
+        """`plots`, `foxglove`: the viewers it feeds while they show a partition's stream."""
         self.router = router
         self.bus = bus
         self.keys = SiteKeys(site.site)
@@ -81,14 +89,18 @@ class PartitionLive:
         self._wants: dict[str, frozenset[str]] = {"supervision": self.watched}
         self._viewed: frozenset[str] = frozenset()
         self._withdraw: list[Callable[[str, str], None]] = []
+        if plots is not None:
+            self._serve_plots(plots)
+        for fox in foxglove:
+            self._serve_foxglove(fox)
 
-    def serve_plots(self, live_plots: LivePlots) -> None:
+    def _serve_plots(self, live_plots: LivePlots) -> None:
         """The dashboard's live plots: fed while they plot a partition's stream."""
         live_plots.add_feed(self.feed, "live-plots-partitions")
         live_plots.on_demand(lambda streams: self.want("dashboard", streams))
         self._withdraw.append(live_plots.forget_latest)
 
-    def serve_foxglove(self, foxglove: FoxgloveLive) -> None:
+    def _serve_foxglove(self, foxglove: FoxgloveLive) -> None:
         """The Foxglove live view: fed while a client subscribes to a partition's stream."""
         foxglove.add_feed(self.feed, "foxglove-partitions")
         foxglove.on_demand(lambda streams: self.want("foxglove", streams))

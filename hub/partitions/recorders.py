@@ -22,19 +22,17 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable
 from typing import Any
 
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.recording.seams import Collect
 from fleetdaq.hub.requests import json_object
 from fleetdaq.hub.routing.router import Router
 from fleetdaq.runtime.threads import NamedThread
 
 log = logging.getLogger("fleetdaq.hub")
 
-FORWARDED = ("start", "stop", "split", "snapshot")
-"""What the main hub passes on (`status` is each partition's report)."""
 ANSWER_S = 120.0
 """How long the main hub waits for a partition's answer (a stop closes and fsyncs its file)."""
 MAX_ANSWER_BYTES = 4 * 1024 * 1024
@@ -59,9 +57,6 @@ def parse_answer(raw: bytes) -> dict[str, Any]:
         out[k] = v
     out["ok"] = out["ok"] and not out["error"]
     return out
-
-
-Collect = Callable[[], dict[str, dict[str, Any]]]
 
 
 class PartitionRecorders:

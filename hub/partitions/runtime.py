@@ -20,22 +20,22 @@ What crosses the mesh is small:
   liveliness token ``hub/partition/<name>/alive`` tells the main hub that it is there
   (`fleetdaq.hub.partitions.watch.PartitionWatch` reads them all).
 
-A partition hub runs the router, the event bus and events.log, the recorder, the node watch of
-its slice, its own health, the report, a status request on ``hub/partition/<name>/status`` and
-recorder requests on ``hub/partition/<name>/recorder`` (the main hub passes its start, stop and
-split on: `fleetdaq.hub.partitions.recorders`). Supervision (alarms, notifications), rules,
-commands, snapshots and the dashboard run on the main hub only (`PartitionWatch` puts the
-partitions' streams into its read model, so the stream alarms, the dashboard and ``hub/status``
-cover the whole fleet)."""
+A partition hub runs the router, the event bus and events.log, the recorder, its snapshot
+buffer (triggered with the main hub's: `fleetdaq.hub.partitions.snapshots`), the node watch of
+its slice, its own health, the report (`PartitionReport`, here), a status request on
+``hub/partition/<name>/status`` and recorder requests on ``hub/partition/<name>/recorder`` (the
+main hub passes its start, stop and split on: `fleetdaq.hub.partitions.recorders`).
+Supervision (alarms, notifications), rules, commands and the dashboard run on the main hub only
+(`PartitionWatch` puts the partitions' streams into its read model, so the stream alarms, the
+dashboard and ``hub/status`` cover the whole fleet). Both kinds of hub are composed by
+`fleetdaq.hub.composition` and run by `fleetdaq.hub.runtime` (`PartitionRuntime`)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 from fleetdaq.contract.cdr import encode
@@ -43,11 +43,7 @@ from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.live.status import StatusService
-from fleetdaq.hub.nodes.refused import RefusedKeys
-from fleetdaq.hub.nodes.watch import NodeWatch
-from fleetdaq.hub.partitions.recorders import recorder_key
-from fleetdaq.hub.partitions.snapshots import PartitionSnapshots
+from fleetdaq.hub.context import event_node
 from fleetdaq.hub.periodic import Periodic
 from fleetdaq.hub.read_model import (
     DiskView,
@@ -55,18 +51,8 @@ from fleetdaq.hub.read_model import (
     ReadModel,
     to_jsonable,
 )
-from fleetdaq.hub.recording.data_lock import DataFolderClaim, DataFolderLock, Place
-from fleetdaq.hub.recording.recorder import Recorder
-from fleetdaq.hub.recording.requests import RecorderRequests
-from fleetdaq.hub.recording.snapshots import SnapshotBuffer
-from fleetdaq.hub.routing.refused_traffic import RefusedTraffic
 from fleetdaq.hub.routing.router import Router
-from fleetdaq.hub.services import ServiceStack
-from fleetdaq.hub.supervision.certificates import CertificateWatch
-from fleetdaq.hub.supervision.event_log import EventLog
-from fleetdaq.hub.supervision.hub_health import HubHealth
 from fleetdaq.runtime.paths import default_data_dir
-from fleetdaq.runtime.systemd import Systemd
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -80,7 +66,7 @@ def partition_key(keys: SiteKeys, name: str, what: str) -> str:
 
 def partition_event_node(name: str) -> str:
     """The `node` of a partition hub's own events (the main hub's are ``hub``)."""
-    return f"hub/{name}"
+    return event_node(name)
 
 
 def partition_data_dir(site: SiteConfig, name: str, override: Path | None = None) -> Path:
@@ -175,202 +161,3 @@ class PartitionReport(Periodic):
         pubs, self._pubs = self._pubs, {}
         for pub in pubs.values():
             pub.undeclare()
-
-
-class PartitionRuntime:
-    """A partition hub (`fleetdaq hub --partition NAME`): a context manager, like `HubRuntime`,
-    with the services a partition hub runs (see the module's docstring), composed here."""
-
-    def __init__(
-        self,
-        site: SiteConfig,
-        partition: str,
-        data_dir: Path | None = None,
-        listen: list[str] | None = None,
-    ) -> None:
-        if partition not in site.hub.partitions:
-            raise KeyError(partition)
-        self.site = site
-        self.partition = partition
-        self.listen = listen or list(site.hub.partitions[partition].listen)
-        self.data_dir = partition_data_dir(site, partition, data_dir)
-        self.lock = DataFolderLock(self.data_dir, f"fleetdaq hub --partition {partition}")
-        self.keys = SiteKeys(site.site)
-        self.model = ReadModel(site.site)
-        self.bus = EventBus(node=partition_event_node(partition))
-        self.refused = RefusedKeys(self.bus, self.model)
-        self.refused_traffic = RefusedTraffic(self.bus, self.model, f"partition hub {partition}")
-        self.router = Router(
-            self.listen,
-            site,
-            connect=site.mesh_connect(partition),
-            partition=partition,
-            refused=self.refused_traffic,
-        )
-        self.event_log = EventLog(self.data_dir / "events.log", self.bus, self.model)
-        self.recorder = Recorder(
-            self.router,
-            site,
-            self.data_dir,
-            self.bus,
-            self.model,
-            self.refused,
-            partition=partition,
-        )
-        self.event_log.deliver(self.recorder.event_delivery)
-        self.nodes = NodeWatch(
-            self.router,
-            site,
-            self.bus,
-            self.model,
-            self.recorder,
-            self.refused,
-            partition=partition,
-        )
-        # The minute before an event, of this hub's slice: triggered with the main hub's.
-        self.snapshots = SnapshotBuffer.of_recorder(
-            site,
-            self.data_dir,
-            self.bus,
-            self.model,
-            self.recorder,
-            site.hub.partitions[partition].snapshot,
-        )
-        self.snapshot_requests = (
-            PartitionSnapshots(self.router, self.keys, self.snapshots, self.bus)
-            if self.snapshots is not None
-            else None
-        )
-        # Start, stop and split, from the main hub (which passes its own on) or for this hub alone.
-        self.recorder_requests = RecorderRequests(
-            self.router,
-            self.keys,
-            self.recorder,
-            self.snapshot,
-            self.snapshots.snapshot if self.snapshots is not None else None,
-            site.security,
-            key=recorder_key(self.keys, partition),
-            snapshot_setting=(
-                f"hub.partitions.{partition}.snapshot.enabled"
-                if site.hub.partitions[partition].snapshot is not None
-                else "hub.snapshot.enabled"
-            ),
-        )
-        certificates = (
-            CertificateWatch(site, self.model, self.bus, partition) if site.security.tls else None
-        )
-        self.hub_health = HubHealth(
-            self.data_dir, self.model, self.recorder, node=partition_event_node(partition),
-            certificates=certificates,
-        )  # fmt: skip
-        self.report = PartitionReport(self.router, self.keys, partition, self.model, self.bus)
-        self.status = StatusService(
-            self.router,
-            self.keys,
-            self.snapshot,
-            site.security,
-            key=partition_key(self.keys, partition, "status"),
-        )
-        self.services = ServiceStack(
-            [
-                # Before any port or file: one hub per data folder.
-                DataFolderClaim(self.lock, [Place(self.event_log.path, "events.log")]),
-                self.router,
-                _BusService(self.bus),
-                self.event_log,
-                self.recorder,
-                *([self.snapshots] if self.snapshots is not None else []),
-                *([self.snapshot_requests] if self.snapshot_requests is not None else []),
-                self.nodes,
-                self.hub_health,
-                self.report,  # before the certificates: their warning goes to the main hub
-                *([certificates] if certificates is not None else []),
-                self.recorder_requests,
-                self.status,
-            ]
-        )
-        self.started = False
-        self.systemd = Systemd()
-
-    def __enter__(self) -> PartitionRuntime:
-        self.start()
-        return self
-
-    def __exit__(
-        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-    def start(self) -> None:
-        self.services.start()
-        self.started = True
-        self.systemd.beats.append(self.recorder.beat)
-        self.systemd.status_of = self.status_line
-        self.systemd.ready(self.status_line())
-        session = self.recorder.session
-        assert session is not None
-        self.bus.emit(
-            logging.INFO,
-            "hub",
-            "started",
-            f"partition hub {self.partition} started: site {self.site.site}, listening on "
-            f"{', '.join(self.listen)}, meshed with {', '.join(self.router.connect)}, "
-            f"recording {', '.join(self.recorder.nodes)} into session {session.name}",
-            session=session.name,
-        )
-        log.info(
-            "partition hub %r of site %r listening on %s, recording %s into %s",
-            self.partition,
-            self.site.site,
-            self.listen,
-            self.recorder.nodes,
-            session.dir,
-        )
-
-    def status_line(self) -> str:
-        view = self.snapshot()
-        r = view.recorder
-        alive = sum(n.alive for n in view.nodes)
-        return (
-            f"partition {self.partition}: {r.state} {r.session or '-'}, "
-            f"{r.bytes_written / 1e9:.2f} GB written; {alive}/{len(view.nodes)} nodes alive"
-        )
-
-    def close(self) -> None:
-        if self.started:
-            self.systemd.stopping("stopping: closing files")
-        self.services.stop()
-        self.refused.publish()
-
-    def failures(self) -> list[tuple[str, str]]:
-        return self.services.failures()
-
-    def snapshot(self) -> HubView:
-        view = self.model.snapshot(time.time_ns())
-        failures = tuple(self.failures()) if self.started else ()
-        snapshots = self.snapshots.counters() if self.snapshots is not None else {}
-        return dataclasses.replace(view, failures=failures, snapshots=snapshots)
-
-    def summary(self) -> dict[str, Any]:
-        out = self.recorder.summary()
-        out["partition"] = self.partition
-        out["events"] = dict(self.event_log.counts)
-        out["failures"] = [f"{name}: {why}" for name, why in self.failures()]
-        return out
-
-
-class _BusService:
-    name = "event-bus"
-
-    def __init__(self, bus: EventBus) -> None:
-        self.bus = bus
-
-    def start(self) -> None:
-        self.bus.start()
-
-    def stop(self) -> None:
-        self.bus.stop()
-
-    def failure(self) -> str | None:
-        dead = self.bus.dead()
-        return f"event subscriber thread(s) died: {', '.join(dead)}" if dead else None

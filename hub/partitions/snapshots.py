@@ -37,15 +37,15 @@ def trigger_key(keys: SiteKeys) -> str:
 
 
 class SnapshotTriggers:
-    """The main hub's side: every trigger its snapshot buffer is told of, to the partitions."""
+    """The main hub's side: every trigger its snapshot buffer is told of (`send`, its
+    `on_trigger`), to the partitions."""
 
     name = "snapshot-triggers"
 
-    def __init__(self, router: Router, keys: SiteKeys, snapshots: SnapshotBuffer) -> None:
+    def __init__(self, router: Router, keys: SiteKeys) -> None:
         self.router = router
         self.key = trigger_key(keys)
         self.sent = 0
-        snapshots.on_trigger = self.send
 
     def start(self) -> None:
         pass

@@ -46,10 +46,9 @@ from fleetdaq.contract.wire import (
     plausible_time,
 )
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.nodes.event_delivery import EventDelivery
-from fleetdaq.hub.nodes.refused import RefusedKeys
 from fleetdaq.hub.read_model import ReadModel, RecorderView
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.hub.recording.seams import EventAcks, Refusals
 from fleetdaq.hub.recording.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
 from fleetdaq.hub.recording.stream_reports import StreamReports
 from fleetdaq.hub.recording.stream_stats import StreamStats
@@ -79,14 +78,18 @@ class Recorder:
         data_dir: Path,
         bus: EventBus,
         model: ReadModel,
-        refused: RefusedKeys,
+        refused: Refusals,
+        events: EventAcks,
         feed: BatchFeed | None = None,
         max_queued_bytes: int = 512 * 1024 * 1024,
         partition: str | None = None,
+        tap: Tap | None = None,
     ) -> None:
         """`partition`: the hub this is (None: the main hub). With `hub.partitions` in the site
         file, a hub records and acks only the streams of its own nodes (`SiteConfig.nodes_of`)
-        and subscribes to those alone, so no other hub's batches cross the router mesh to it."""
+        and subscribes to those alone, so no other hub's batches cross the router mesh to it.
+        `events`: the events the nodes it records spooled (`SiteConfig.nodes_of` of the same
+        `partition`), acked once recorded and logged."""
         self.router = router
         self.site = site
         self.cfg = site.hub.recorder
@@ -115,7 +118,7 @@ class Recorder:
         """Bytes of the sessions before the current one (stop and start make a new one)."""
         self.beat = Beat("recorder writer")
         """Shows the writer loop moves (at least every 0.2 s): systemd's watchdog watches it."""
-        self.tap: Tap | None = None
+        self.tap = tap
         """Also handed every message recorded besides batches (the snapshot buffer), on the
         writer thread, whether or not the recorder is recording. Must be quick."""
         self.writer_errors = 0
@@ -134,7 +137,7 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._last_view = 0.0
         self.reports = StreamReports(bus)
-        self.event_delivery = EventDelivery(set(self.nodes))
+        self.event_delivery = events
         """The events the nodes it records spooled: acked here once recorded and logged."""
         self._bus_sub = bus.subscribe(self.name, self._on_event, maxsize=100_000)
 

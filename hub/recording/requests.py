@@ -20,9 +20,9 @@ from typing import Any
 
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.keys import SiteKeys
-from fleetdaq.hub.partitions.recorders import FORWARDED, PartitionRecorders
 from fleetdaq.hub.read_model import HubView, to_jsonable
 from fleetdaq.hub.recording.recorder import Recorder
+from fleetdaq.hub.recording.seams import FORWARDED, OtherHubs
 from fleetdaq.hub.requests import (
     MAX_HOST_CHARS,
     MAX_USER_CHARS,
@@ -52,7 +52,7 @@ class RecorderRequests(RequestService):
         snapshot: Snapshot | None,
         security: SecurityConfig | None = None,
         key: str | None = None,
-        partitions: PartitionRecorders | None = None,
+        partitions: OtherHubs | None = None,
         snapshot_setting: str = "hub.snapshot.enabled",
     ) -> None:
         """`snapshot_setting`: the site file's key that switches this hub's snapshot buffer off

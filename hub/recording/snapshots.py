@@ -6,9 +6,10 @@ an event is kept even when nobody was recording.
 
 What is held is what the recorder takes (checked, new messages), by reference: a batch's
 payload is the same bytes object the recorder wrote, never a copy. Batches come from the batch
-feed; everything else from the recorder's tap (called on its writer thread: an append). The
-memory bound (`max_bytes`) is counted on payload bytes plus a per-message overhead; when it
-binds before `seconds` does, the view says how many seconds the buffer really covers.
+feed; everything else from the recorder's tap (`offer`, which the composition root hands the
+recorder; called on its writer thread: an append). The memory bound (`max_bytes`) is counted
+on payload bytes plus a per-message overhead; when it binds before `seconds` does, the view
+says how many seconds the buffer really covers.
 
 A snapshot is a folder ``<data_dir>/snapshots/<UTC time>/`` written like a recording session
 (one MCAP file and a rosbag2 ``metadata.yaml``), so `fleetdaq.read`, `fleetdaq verify`,
@@ -30,7 +31,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from fleetdaq.contract.config.site import SiteConfig, effective_yaml
 from fleetdaq.contract.messages import Event
@@ -41,9 +42,6 @@ from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.session import RecordingSession, topic_of
 from fleetdaq.runtime.threads import name_os_thread
-
-if TYPE_CHECKING:
-    from fleetdaq.hub.recording.recorder import Recorder
 
 log = logging.getLogger("fleetdaq.snapshots")
 
@@ -70,6 +68,7 @@ class SnapshotBuffer:
         feed: BatchFeed,
         recording: Callable[[], bool] = lambda: False,
         cfg: SnapshotConfig | None = None,
+        on_trigger: Callable[[dict[str, str]], None] | None = None,
     ) -> None:
         self.cfg = cfg or site.hub.snapshot
         """`hub.snapshot`, or a partition hub's own (`hub.partitions.<name>.snapshot`)."""
@@ -94,7 +93,7 @@ class SnapshotBuffer:
         self._pool: ThreadPoolExecutor | None = None
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=64 << 20)
         self._events = bus.subscribe(self.name, self._on_event)
-        self.on_trigger: Callable[[dict[str, str]], None] | None = None
+        self.on_trigger = on_trigger
         """Told of every request and every alarm that may take a snapshot (the main hub of a
         partitioned site passes them on: each partition hub keeps a buffer of its own slice)."""
         self._recorder_cfg = site.hub.recorder.model_copy(
@@ -102,25 +101,6 @@ class SnapshotBuffer:
         )
         self._config_yaml = effective_yaml(site)
         self._publish()
-
-    @classmethod
-    def of_recorder(
-        cls,
-        site: SiteConfig,
-        data_dir: Path,
-        bus: EventBus,
-        model: ReadModel,
-        recorder: Recorder,
-        cfg: SnapshotConfig | None = None,
-    ) -> SnapshotBuffer | None:
-        """The buffer of what `recorder` takes (its batch feed and its tap), or None when the
-        hub keeps none (`enabled` of `cfg`, default `hub.snapshot`)."""
-        cfg = cfg or site.hub.snapshot
-        if not cfg.enabled:
-            return None
-        buffer = cls(site, data_dir, bus, model, recorder.feed, lambda: recorder.recording, cfg)
-        recorder.tap = buffer.offer
-        return buffer
 
     # --- service ---------------------------------------------------------------------------------
 

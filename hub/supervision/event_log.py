@@ -55,7 +55,10 @@ class EventLog:
         max_bytes: int = 10_000_000,
         backups: int = 5,
         tail: int = 200,
+        delivery: EventDelivery | None = None,
     ) -> None:
+        """`delivery`: told which events are written (it acks the nodes' spooled events only
+        once they are); it fsyncs through `sync`."""
         self.path = path
         self.max_bytes = max_bytes
         self.backups = backups
@@ -63,7 +66,7 @@ class EventLog:
         self.recent: deque[Event] = deque(maxlen=tail)
         self.counts: dict[str, int] = {}
         self._file: _QuietRotatingFile | None = None
-        self.delivery: EventDelivery | None = None
+        self.delivery = delivery
         self._sub = bus.subscribe(self.name, self._on_event)
 
     def start(self) -> None:
@@ -78,11 +81,6 @@ class EventLog:
             errors="backslashreplace",
         )
         self._file.setFormatter(logging.Formatter("%(message)s"))
-
-    def deliver(self, delivery: EventDelivery) -> None:
-        """Tell `delivery` which events are written, and fsync for it before an ack."""
-        self.delivery = delivery
-        delivery.log_sync = self.sync
 
     def sync(self) -> bool:
         """fsync events.log (the current file; a rotated one was closed whole). False if the

@@ -19,6 +19,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -91,7 +92,10 @@ class Supervisor:
         journal_path: Path,
         notifier: Notifier | None = None,
         snapshot: Any = None,
+        also_from: Sequence[BatchFeed] = (),
     ) -> None:
+        """`also_from`: feeds of batches the recorder never takes (a partition's watched
+        streams: `fleetdaq.hub.partitions.live`), evaluated on the same thread."""
         self.site = site
         self.bus = bus
         self.model = model
@@ -122,16 +126,13 @@ class Supervisor:
         self.missed_batches = 0
         self.started_ns = 0
         self._consumer = feed.subscribe(self.name, self._on_batch, max_bytes=128 << 20)
+        for other in also_from:
+            other.attach(self._consumer)
         self._stop = threading.Event()
         self._thread = NamedThread(target=self._run, name="supervisor", daemon=True)
         self._died: str | None = None
         self._journal_errors_told = 0
         self._journal_told_at = 0.0
-
-    def also_from(self, feed: BatchFeed) -> None:
-        """Also evaluate the batches of `feed` (a partition's watched streams, which the main
-        hub's recorder never takes: `fleetdaq.hub.partitions.live`), on the same thread."""
-        feed.attach(self._consumer)
 
     # --- lifecycle ----------------------------------------------------------------------------
 
