@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pydantic import ConfigDict
 
 from fleetdaq.contract.schema import StreamBase
 from fleetdaq.edge.drivers.base import Block, Driver
@@ -22,6 +23,7 @@ from fleetdaq.edge.drivers.conformance import (
 )
 from fleetdaq.edge.drivers.pacing import TimeSource
 from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.wave_sim import WaveSimStream
 
 
 def _channels(*names_units: tuple[str, str]) -> list[dict[str, str]]:
@@ -267,10 +269,15 @@ def test_the_suite_fails_a_driver_whose_blocks_do_not_hold_the_rates_scans() -> 
         check_reads_at_rate(t8, _wrapping("labjack_t8", SkipsHalfTheScans))
 
 
+class LaxWaveSimStream(WaveSimStream):
+    """The wave sim's schema, but ignoring keys it does not know."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
 def test_the_suite_fails_a_schema_that_accepts_an_unknown_key() -> None:
     real = find_driver("wave_sim")
-    lax = type("Lax", (real.schema,), {"model_config": {**real.schema.model_config}})
-    lax.model_config["extra"] = "ignore"
-    lax.model_rebuild(force=True)
     with pytest.raises(AssertionError, match="'no_such_key': 1} was accepted"):
-        check_config_errors(TestWaveSim.case, FoundDriver("wave_sim", lax, real.create))
+        check_config_errors(
+            TestWaveSim.case, FoundDriver("wave_sim", LaxWaveSimStream, real.create)
+        )
