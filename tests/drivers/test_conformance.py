@@ -1,28 +1,38 @@
-"""Every built-in stream driver with a simulator passes the driver conformance suite
-(`fleetdaq.edge.drivers.conformance`), and the suite fails drivers that break the contract."""
+"""Every built-in driver, stream and output, passes the driver conformance suite on its
+simulator (`fleetdaq.edge.drivers.conformance`), and the suite fails drivers that break the
+contract."""
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
 import pytest
 from pydantic import ConfigDict
 
-from fleetdaq.contract.schema import StreamBase
-from fleetdaq.edge.drivers.base import Block, Driver
+from fleetdaq.contract.errors import DeviceError
+from fleetdaq.contract.schema import OutputBase, StreamBase
+from fleetdaq.edge.drivers.base import Block, Driver, OutputDriver
 from fleetdaq.edge.drivers.conformance import (
     DriverCase,
     DriverConformance,
     FoundDriver,
+    FoundOutput,
+    OutputCase,
+    OutputConformance,
     check_close,
     check_config_errors,
     check_fault,
+    check_output_fault,
+    check_output_write_readback,
     check_reads_at_rate,
     find_driver,
+    find_output,
 )
-from fleetdaq.edge.drivers.pacing import TimeSource
+from fleetdaq.edge.drivers.pacing import TimeSource, VirtualTime
 from fleetdaq.edge.drivers.shared import SharedDevices
+from fleetdaq.edge.drivers.table import DRIVERS, OUTPUTS
 from fleetdaq.edge.drivers.wave_sim import WaveSimStream
 
 
@@ -171,12 +181,79 @@ class TestSht3x(DriverConformance):
     )
 
 
+class TestWeldRobotSim(DriverConformance):
+    case = DriverCase(
+        {
+            "driver": "weld_robot_sim",
+            "rate_hz": 10,
+            "scans_per_batch": 5,
+            "cell": "c1",
+            "layer_s": 2,
+            "max_wait_s": 1,
+            "channels": [{"name": "welding"}, {"name": "layer"}, {"name": "last_wait_s"}],
+        },
+        bad_configs=(({"channels": [{"name": "heat"}]}, "channels"), ({"cell": "a b"}, "cell")),
+    )
+
+
+# --- outputs, on their simulated transports ---------------------------------------------------
+
+
+class TestLabJackT8Dac(OutputConformance):
+    case = OutputCase(
+        {"driver": "labjack_t8_dac", "dac": 0, "min": 0, "max": 5, "safe": 1, "sim": {"seed": 3}},
+        fault={"kind": "unplug", "at_s": 1, "for_s": 2},
+        bad_configs=(({"max": 11}, "max"), ({"dac": 2}, "dac")),
+    )
+
+
+class TestLabJackT8Dio(OutputConformance):
+    case = OutputCase(
+        {"driver": "labjack_t8_dio", "line": "FIO2", "safe": 0, "sim": {"seed": 3}},
+        fault={"kind": "unplug", "at_s": 1, "for_s": 2},
+        bad_configs=(({"line": "FIO9"}, "line"), ({"max_rate": 1}, "max_rate")),
+    )
+
+
+class TestPcf8574(OutputConformance):
+    case = OutputCase(
+        {"driver": "pcf8574", "address": 0x20, "pin": 3, "invert": True, "safe": 0, "sim": {}},
+        fault={"kind": "nack", "at_s": 1, "for_s": 1},
+        bad_configs=(({"address": 0x30}, "address"), ({"pin": 8}, "pin")),
+    )
+
+
+class TestMcp4725(OutputConformance):
+    case = OutputCase(
+        {"driver": "mcp4725", "address": 0x61, "min": 0, "max": 3, "safe": 1, "sim": {}},
+        tolerance=3.3 / 4096,
+        fault={"kind": "nack", "at_s": 1, "for_s": 1},
+        bad_configs=(({"max": 4}, "max"), ({"unit": "mA"}, "unit")),
+    )
+
+
+class TestWeldRobotResume(OutputConformance):
+    case = OutputCase(
+        {"driver": "weld_robot_resume", "cell": "c1", "safe": 0},
+        bad_configs=(({"kind": "analog"}, "kind"),),
+    )
+
+
+def test_every_built_in_driver_runs_the_conformance_suite() -> None:
+    cases = [c for c in globals().values() if isinstance(c, type) and hasattr(c, "case")]
+    streams = {c.case.driver for c in cases if issubclass(c, DriverConformance)}
+    outputs = {c.case.driver for c in cases if issubclass(c, OutputConformance)}
+    assert streams == set(DRIVERS)
+    assert outputs == set(OUTPUTS)
+
+
 def test_checks_a_case_has_nothing_for_are_left_out_not_skipped() -> None:
     names = {n for n in dir(TestWaveSim) if n.startswith("test_") and getattr(TestWaveSim, n)}
     assert "test_an_injected_fault_is_flagged_or_a_typed_error" not in names
     assert "test_unplug_is_a_disconnect_and_replug_reopens" not in names
     assert "test_reads_block_at_the_configured_rate" in names
     assert callable(TestMax31855.test_unplug_is_a_disconnect_and_replug_reopens)
+    assert TestWeldRobotResume.test_a_faulty_device_is_a_typed_error_then_reopens is None
 
 
 # --- the suite fails drivers that break the contract -----------------------------------------
@@ -281,3 +358,66 @@ def test_the_suite_fails_a_schema_that_accepts_an_unknown_key() -> None:
         check_config_errors(
             TestWaveSim.case, FoundDriver("wave_sim", LaxWaveSimStream, real.create)
         )
+
+
+class OutputWrapper:
+    def __init__(self, inner: OutputDriver) -> None:
+        self.inner = inner
+
+    @property
+    def where(self) -> str:
+        return self.inner.where
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def write(self, value: float) -> None:
+        self.inner.write(value)
+
+    def read(self) -> float:
+        return self.inner.read()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class SwallowsErrors(OutputWrapper):
+    """Says the last value written when the device cannot say (a made-up readback)."""
+
+    last = 0.0
+
+    def write(self, value: float) -> None:
+        self.last = value
+        with contextlib.suppress(DeviceError):
+            self.inner.write(value)
+
+    def read(self) -> float:
+        try:
+            return self.inner.read()
+        except DeviceError:
+            return self.last
+
+
+class ReadsBackOff(OutputWrapper):
+    def read(self) -> float:
+        return self.inner.read() + 0.01
+
+
+def _wrapping_output(name: str, wrap: type[Any]) -> FoundOutput:
+    real = find_output(name)
+
+    def create(cfg: OutputBase, clock: VirtualTime, shared: SharedDevices) -> OutputDriver:
+        made: OutputDriver = wrap(real.create(cfg, clock, shared))
+        return made
+
+    return FoundOutput(name, real.schema, create)
+
+
+def test_the_suite_fails_an_output_that_hides_a_faulty_device() -> None:
+    with pytest.raises(AssertionError, match="writes and reads went on during fault"):
+        check_output_fault(TestMcp4725.case, _wrapping_output("mcp4725", SwallowsErrors))
+
+
+def test_the_suite_fails_an_output_whose_readback_is_not_what_it_holds() -> None:
+    with pytest.raises(AssertionError, match=r"wrote 0, read back 0.01 \(tolerance 0.0008"):
+        check_output_write_readback(TestMcp4725.case, _wrapping_output("mcp4725", ReadsBackOff))

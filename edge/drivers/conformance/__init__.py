@@ -5,9 +5,11 @@ another distribution runs the same checks as the built-in ones. A driver is desc
 a `DriverCase` (a valid config with a `sim:` block, the faults its simulator can inject, configs
 its schema must refuse); each `check_*` function builds the driver from the case, runs it on
 its simulator and raises `NotConforming` (an AssertionError) saying what is wrong: open and
-describe, read at rate, fault, unplug and replug, close, time fit, config errors. The checks
-need no test framework; `DriverConformance` is the pytest-friendly form, a class whose `test_*`
-methods a driver package's tests inherit by naming their case.
+describe, read at rate, fault, unplug and replug, close, time fit, config errors; and for
+output drivers (`OutputCase`) write and read back, a faulty device, close, config errors. The
+checks need no test framework; `DriverConformance` and `OutputConformance` are the
+pytest-friendly form, classes whose `test_*` methods a driver package's tests inherit by naming
+their case.
 
 Drivers whose simulated transport runs on the clock it is given run on a `VirtualTime` here, so
 reads return at once and a fault window of seconds costs nothing; sims paced by the host's own
@@ -27,6 +29,7 @@ from fleetdaq.edge.drivers.conformance.case import (
     NotConforming,
     check_block,
     find_driver,
+    lookup,
 )
 from fleetdaq.edge.drivers.conformance.checks import (
     GENERIC_BAD_CONFIGS,
@@ -38,6 +41,16 @@ from fleetdaq.edge.drivers.conformance.checks import (
     check_time_fit,
     check_unplug_replug,
 )
+from fleetdaq.edge.drivers.conformance.outputs import (
+    FoundOutput,
+    OutputCase,
+    OutputConformance,
+    check_output_close,
+    check_output_config_errors,
+    check_output_fault,
+    check_output_write_readback,
+    find_output,
+)
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -46,16 +59,25 @@ __all__ = [
     "DriverConformance",
     "DriverRun",
     "FoundDriver",
+    "FoundOutput",
     "NotConforming",
+    "OutputCase",
+    "OutputConformance",
     "check_block",
     "check_close",
     "check_config_errors",
     "check_fault",
     "check_open_and_describe",
+    "check_output_close",
+    "check_output_config_errors",
+    "check_output_fault",
+    "check_output_write_readback",
     "check_reads_at_rate",
     "check_time_fit",
     "check_unplug_replug",
     "find_driver",
+    "find_output",
+    "lookup",
 ]
 
 

@@ -5,13 +5,15 @@ and the Block contract every read must keep (`check_block`)."""
 from __future__ import annotations
 
 import contextlib
+import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import entry_points
-from typing import Any, Protocol, TypeVar
+from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
+from pydantic import BaseModel, ValidationError
 
 from fleetdaq.contract.schema import StreamBase
 from fleetdaq.edge.drivers.base import Block, Driver, DriverEvent
@@ -48,37 +50,43 @@ class FoundDriver:
     `sim:` (the contract of `fleetdaq.edge.drivers.table.create_driver`)."""
 
 
-def find_driver(name: str) -> FoundDriver:
-    """The stream driver a config's `driver: name` selects: a `fleetdaq.drivers` entry point of
-    that name (a driver package's plugin object: `kind`, `schema`, `driver`, `sim`, `shared`,
-    as a row of the driver table), else the built-in driver table.
+def lookup(name: str, kind: Literal["stream", "output"]) -> tuple[Any, Callable[..., Any]]:
+    """The schema and the factory (``create(cfg, clock, shared)``) of the `kind` driver that a
+    config's `driver: name` selects: a `fleetdaq.drivers` entry point of that name (a driver
+    package's plugin object: `kind`, `schema`, `driver`, `sim`, `shared`, as a row of the
+    driver table), else the built-in driver table.
 
     The one place the suite looks a driver up: once a registry of entry points holds every
     driver, built-in ones included, this becomes that registry's lookup.
     """
-    from fleetdaq.edge.drivers.table import DRIVERS, create_driver, load_sim
+    from fleetdaq.edge.drivers import table
 
     for ep in entry_points(group=ENTRY_POINT_GROUP, name=name):
         plugin = ep.load()
-        expect(plugin.kind == "stream", f"{ep.value}: a {plugin.kind!r} driver, not a stream")
+        expect(plugin.kind == kind, f"{ep.value}: a {plugin.kind!r} driver, not {kind!r}")
 
-        def create(
-            cfg: StreamBase, clock: TimeSource, shared: SharedDevices, plugin: Any = plugin
-        ) -> Driver:
-            if plugin.sim is not None and getattr(cfg, "sim", None) is not None:
-                transport = load_sim(plugin.sim)(cfg, clock, shared)
-                made: Driver = plugin.driver(cfg, transport=transport, clock=clock)
-            elif plugin.shared:
-                made = plugin.driver(cfg, clock=clock, shared=shared)
-            else:
-                made = plugin.driver(cfg)
-            return made
+        def create(cfg: Any, clock: TimeSource, shared: SharedDevices, plugin: Any = plugin) -> Any:
+            sim = getattr(cfg, "sim", None) is not None and plugin.sim is not None
+            transport = table.load_sim(plugin.sim)(cfg, clock, shared) if sim else None
+            if kind == "output":
+                return plugin.driver(cfg, transport=transport, clock=clock, shared=shared)
+            if sim:
+                return plugin.driver(cfg, transport=transport, clock=clock)
+            if plugin.shared:
+                return plugin.driver(cfg, clock=clock, shared=shared)
+            return plugin.driver(cfg)
 
-        return FoundDriver(name, plugin.schema, create)
-    spec = DRIVERS.get(name)
-    if spec is None:
-        raise NotConforming(f"no driver {name!r}: not built in, no {ENTRY_POINT_GROUP} entry point")
-    return FoundDriver(name, spec.schema, create_driver)
+        return plugin.schema, create
+    specs: Mapping[str, Any] = table.DRIVERS if kind == "stream" else table.OUTPUTS
+    if name not in specs:
+        raise NotConforming(f"no {kind} driver {name!r}: not built in, no entry point")
+    return specs[name].schema, table.create_driver if kind == "stream" else table.create_output
+
+
+def find_driver(name: str) -> FoundDriver:
+    """The stream driver a config's `driver: name` selects (see `lookup`)."""
+    schema, create = lookup(name, "stream")
+    return FoundDriver(name, schema, create)
 
 
 @dataclass(frozen=True)
@@ -120,15 +128,43 @@ class DriverCase:
         return str(self.config["driver"])
 
     def with_changes(self, changes: Mapping[str, Any]) -> dict[str, Any]:
-        """The config with top-level keys replaced (a value of None removes the key)."""
-        out = {**self.config, **changes}
-        return {k: v for k, v in out.items() if v is not None}
+        return with_changes(self.config, changes)
 
     def with_fault(self, fault: Mapping[str, Any]) -> dict[str, Any]:
-        """The config with `fault` as its simulator's only fault."""
-        sim = dict(self.config.get("sim") or {})
-        sim["faults"] = [dict(fault)]
-        return self.with_changes({"sim": sim})
+        return with_fault(self.config, fault)
+
+
+def with_changes(config: Mapping[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    """`config` with top-level keys replaced (a value of None removes the key)."""
+    out = {**config, **changes}
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def with_fault(config: Mapping[str, Any], fault: Mapping[str, Any]) -> dict[str, Any]:
+    """`config` with `fault` as its simulator's only fault."""
+    sim = dict(config.get("sim") or {})
+    sim["faults"] = [dict(fault)]
+    return with_changes(config, {"sim": sim})
+
+
+def check_refused(schema: type[BaseModel], config: Mapping[str, Any], path: str, name: str) -> None:
+    """`schema` refuses `config` with an error naming the key path `path`: at that location, or
+    from a check of a mapping that holds it whose message names its key (the site loader puts
+    such an error at that key)."""
+    try:
+        schema.model_validate(dict(config))
+    except ValidationError as err:
+        key = re.compile(rf"\b{re.escape(path.rsplit('.', 1)[-1])}\b")
+        locs = []
+        for e in err.errors():
+            loc = ".".join(str(p) for p in e["loc"])
+            locs.append(loc)
+            if loc == path or loc.startswith(path + "."):
+                return
+            if (not loc or path.startswith(loc + ".")) and key.search(e["msg"]):
+                return
+        raise NotConforming(f"{name}: {dict(config)} refused at {locs}, not at {path!r}") from err
+    raise NotConforming(f"{name}: {dict(config)} was accepted")
 
 
 class DriverRun:
@@ -166,29 +202,8 @@ class DriverRun:
             self.clock.advance(round(seconds * 1e9))
 
     def call(self, what: str, fn: Callable[[], T]) -> T:
-        """`fn()` in a worker thread: its result, or its exception raised here; NotConforming
-        (after closing the driver, which must end any blocking call) if it does not return in
-        time."""
-        result: list[T] = []
-        error: list[BaseException] = []
-
-        def run() -> None:
-            try:
-                result.append(fn())
-            except BaseException as err:
-                error.append(err)
-
-        worker = threading.Thread(target=run, name=f"conformance {what}", daemon=True)
-        worker.start()
-        worker.join(self.timeout_s)
-        if worker.is_alive():
-            if what != "close()":
-                self.driver.close()
-                worker.join(self.timeout_s)
-            raise NotConforming(f"{self.case.driver}: {what} did not return in {self.timeout_s} s")
-        if error:
-            raise error[0]
-        return result[0]
+        """`fn()`, bounded (`call_within`); closing the driver ends a call that hangs."""
+        return call_within(self.timeout_s, f"{self.case.driver}: {what}", fn, self.driver.close)
 
     def open(self) -> None:
         self.opened_ns = self.clock.monotonic_ns()
@@ -199,6 +214,32 @@ class DriverRun:
         block = self.call("read()", self.driver.read)
         check_block(block, self.cfg)
         return block
+
+
+def call_within(seconds: float, what: str, fn: Callable[[], T], stop: Callable[[], None]) -> T:
+    """`fn()` in a worker thread: its result, or its exception raised here. If it does not
+    return within `seconds`: `stop()` (which must end it: a driver's close), then NotConforming.
+    """
+    result: list[T] = []
+    error: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            result.append(fn())
+        except BaseException as err:
+            error.append(err)
+
+    worker = threading.Thread(target=run, name=f"conformance {what}", daemon=True)
+    worker.start()
+    worker.join(seconds)
+    if worker.is_alive():
+        if fn != stop:  # a hanging close() is not closed again
+            stop()
+            worker.join(seconds)
+        raise NotConforming(f"{what} did not return in {seconds:g} s")
+    if error:
+        raise error[0]
+    return result[0]
 
 
 def check_block(block: Block, cfg: StreamBase) -> None:

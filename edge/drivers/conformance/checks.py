@@ -10,8 +10,6 @@ import threading
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
-from pydantic import ValidationError
-
 from fleetdaq.contract.errors import DeviceDisconnected, DeviceError
 from fleetdaq.edge.device_time import DeviceTimeFit
 from fleetdaq.edge.drivers.base import Block, DriverHealth
@@ -21,6 +19,7 @@ from fleetdaq.edge.drivers.conformance.case import (
     FoundDriver,
     NotConforming,
     all_valid,
+    check_refused,
     expect,
     find_driver,
 )
@@ -58,8 +57,8 @@ def check_reads_at_rate(case: DriverCase, found: FoundDriver | None = None) -> N
     clock when blocks carry one and on the clock the driver was given; times only increase."""
     found = found or find_driver(case.driver)
     with DriverRun(case, found) as run:
+        start = run.clock.monotonic_ns()  # before open: the device counts from there
         run.open()
-        start = run.clock.monotonic_ns()
         blocks = [run.read() for _ in range(case.reads)]
         elapsed_s = (run.clock.monotonic_ns() - start) / 1e9
     name, rate = found.name, run.cfg.rate_hz
@@ -79,36 +78,33 @@ def check_reads_at_rate(case: DriverCase, found: FoundDriver | None = None) -> N
             math.isclose(measured, spanned, rel_tol=0.01),
             f"{name}: the device clock spans {measured:.6f} s over scans worth {spanned:.6f} s",
         )
+    expect(
+        elapsed_s >= 0.98 * total - 1.0 / rate,
+        f"{name}: {total:.3f} s of scans read in {elapsed_s:.3f} s: reads did not wait for them",
+    )
     if case.virtual_time:
         host_s = (hosts[-1] - hosts[0]) / 1e9
         expect(
             math.isclose(host_s, spanned, rel_tol=0.02, abs_tol=0.5 / rate),
             f"{name}: reads returned {host_s:.6f} s apart for scans worth {spanned:.6f} s",
         )
-        expect(
-            elapsed_s >= 0.98 * total - 1.0 / rate,
-            f"{name}: {total:.3f} s of scans read in {elapsed_s:.3f} s: reads did not wait",
-        )
-    else:
-        # Real time on a shared host: never faster than the device, later only by scheduling.
-        expect(
-            elapsed_s >= 0.9 * spanned,
-            f"{name}: {total:.3f} s of scans read in {elapsed_s:.3f} s: reads did not block",
-        )
+    else:  # real time on a shared host: later than the scans only by scheduling
         expect(elapsed_s <= 1.5 * total + 0.5, f"{name}: {total:.3f} s took {elapsed_s:.3f} s")
 
 
 def check_time_fit(case: DriverCase, found: FoundDriver | None = None) -> None:
     """The agent's device-time fit (`fleetdaq.edge.device_time`), fed as the stream loop feeds
-    it, holds on the driver's clock: no restart, batches contiguous, none stamped after the
-    read that returned it, the fitted period within 1 % of nominal (and the drift the
-    simulator is set to, when the case names it)."""
+    it, holds on the driver's clock: no restart, sample times only increasing, batches
+    contiguous (in virtual time), none stamped after the read that returned it, the fitted
+    period within 1 % of nominal (and the drift the simulator is set to, if the case says)."""
     found = found or find_driver(case.driver)
     name = found.name
     with DriverRun(case, found) as run:
-        fit = DeviceTimeFit(run.cfg.rate_hz)
+        # A read that comes late on a busy host (the first one, often) puts the first line
+        # above later reads; only more than a second below it is taken for a clock step.
+        fit = DeviceTimeFit(run.cfg.rate_hz, step_back_ns=10**7 if case.virtual_time else 10**9)
         run.open()
-        index, prev_end = 0, None
+        index, prev_end, prev_last = 0, None, 0
         for k in range(case.reads):
             block = run.read()
             scans = block.raw.shape[0]
@@ -120,13 +116,16 @@ def check_time_fit(case: DriverCase, found: FoundDriver | None = None) -> None:
                 last <= block.host_ns,
                 f"{name}: block {k} stamped {(last - block.host_ns) / 1e6:.3f} ms after its read",
             )
-            if prev_end is not None and not block.late_polls:
+            if prev_end is not None:
+                expect(t0 > prev_last, f"{name}: block {k} starts before block {k - 1} ended")
+            if prev_end is not None and not block.late_polls and case.virtual_time:
+                # In real time the host's scheduling moves the fit (and the stamps) by itself.
                 gap_ms = (t0 - prev_end) / 1e6
                 expect(
                     abs(gap_ms) <= max(2.0, 1e3 * run.block_s * 0.05),
                     f"{name}: block {k} starts {gap_ms:.3f} ms from where block {k - 1} ended",
                 )
-            prev_end = t0 + round(period * scans)
+            prev_end, prev_last = t0 + round(period * scans), last
             index += scans
     nominal = 1e9 / run.cfg.rate_hz
     expect(fit.restarts == 0, f"{name}: the time fit restarted {fit.restarts} time(s)")
@@ -291,17 +290,8 @@ GENERIC_BAD_CONFIGS: tuple[tuple[Mapping[str, Any], str], ...] = (
 
 def check_config_errors(case: DriverCase, found: FoundDriver | None = None) -> None:
     """The case's config is valid; each bad one (the suite's and the case's) is refused by the
-    driver's schema with an error naming the key path ("" for the stream as a whole)."""
+    driver's schema with an error naming the key path."""
     found = found or find_driver(case.driver)
     found.schema.model_validate(dict(case.config))
     for changes, path in (*GENERIC_BAD_CONFIGS, *case.bad_configs):
-        try:
-            found.schema.model_validate(case.with_changes(changes))
-        except ValidationError as err:
-            locs = [".".join(str(p) for p in e["loc"]) for e in err.errors()]
-            expect(
-                any(loc == path or loc.startswith(path + ".") for loc in locs),
-                f"{found.name}: {dict(changes)} refused at {locs}, expected at {path!r}",
-            )
-        else:
-            raise NotConforming(f"{found.name}: {dict(changes)} was accepted")
+        check_refused(found.schema, case.with_changes(changes), path, found.name)
