@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pydantic import ConfigDict
 
-from fleetdaq.contract.errors import DeviceError
+from fleetdaq.contract.errors import DeviceDisconnected, DeviceError
 from fleetdaq.contract.schema import OutputBase, StreamBase
 from fleetdaq.edge.drivers.base import Block, Driver, OutputDriver
 from fleetdaq.edge.drivers.conformance import (
@@ -27,6 +27,8 @@ from fleetdaq.edge.drivers.conformance import (
     check_output_fault,
     check_output_write_readback,
     check_reads_at_rate,
+    check_time_fit,
+    check_unplug_replug,
     find_driver,
     find_output,
 )
@@ -421,3 +423,34 @@ def test_the_suite_fails_an_output_that_hides_a_faulty_device() -> None:
 def test_the_suite_fails_an_output_whose_readback_is_not_what_it_holds() -> None:
     with pytest.raises(AssertionError, match=r"wrote 0, read back 0.01 \(tolerance 0.0008"):
         check_output_write_readback(TestMcp4725.case, _wrapping_output("mcp4725", ReadsBackOff))
+
+
+class UnplugIsAPlainError(Wrapper):
+    """Reports an unplugged device as a plain DeviceError: the agent could not tell it apart."""
+
+    def read(self) -> Block:
+        try:
+            return self.inner.read()
+        except DeviceDisconnected as err:
+            raise DeviceError(str(err)) from err
+
+
+class FastDeviceClock(Wrapper):
+    """Scales device time by 1.02: a clock running 2 % fast, beyond any crystal's drift."""
+
+    def read(self) -> Block:
+        b = self.inner.read()
+        device_ns = None if b.device_ns is None else round(b.device_ns * 1.02)
+        return Block(b.raw, b.host_ns, b.status, device_ns, b.events, b.late_polls)
+
+
+def test_the_suite_fails_a_driver_that_hides_an_unplug_as_a_plain_device_error() -> None:
+    t8 = TestLabJackT8.case
+    with pytest.raises(AssertionError, match=r"raised DeviceError .* not DeviceDisconnected"):
+        check_unplug_replug(t8, _wrapping("labjack_t8", UnplugIsAPlainError))
+
+
+def test_the_suite_fails_a_driver_whose_device_clock_runs_at_the_wrong_rate() -> None:
+    t8 = TestLabJackT8.case
+    with pytest.raises(AssertionError, match="more than the 1 % of drift the fit follows"):
+        check_time_fit(t8, _wrapping("labjack_t8", FastDeviceClock))

@@ -105,6 +105,7 @@ def check_time_fit(case: DriverCase, found: FoundDriver | None = None) -> None:
         fit = DeviceTimeFit(run.cfg.rate_hz, step_back_ns=10**7 if case.virtual_time else 10**9)
         run.open()
         index, prev_end, prev_last = 0, None, 0
+        clock: list[tuple[int, int]] = []  # (scan index, device ns) of each block's last scan
         for k in range(case.reads):
             block = run.read()
             scans = block.raw.shape[0]
@@ -126,8 +127,17 @@ def check_time_fit(case: DriverCase, found: FoundDriver | None = None) -> None:
                     f"{name}: block {k} starts {gap_ms:.3f} ms from where block {k - 1} ended",
                 )
             prev_end, prev_last = t0 + round(period * scans), last
+            if block.device_ns is not None:
+                clock.append((index + scans - 1, block.device_ns))
             index += scans
     nominal = 1e9 / run.cfg.rate_hz
+    if len(clock) >= 2:
+        device_period = (clock[-1][1] - clock[0][1]) / (clock[-1][0] - clock[0][0])
+        expect(
+            math.isclose(device_period, nominal, rel_tol=0.01),
+            f"{name}: the device clock puts scans {device_period:.1f} ns apart, nominal "
+            f"{nominal:.1f} ns: more than the 1 % of drift the fit follows",
+        )
     expect(fit.restarts == 0, f"{name}: the time fit restarted {fit.restarts} time(s)")
     expect(
         math.isclose(fit.period_ns, nominal, rel_tol=0.01),
@@ -232,6 +242,14 @@ def check_unplug_replug(case: DriverCase, found: FoundDriver | None = None) -> N
         else:
             raise NotConforming(f"{name}: unplugged, reads went on as if nothing happened")
         if raised:
+            run.call("close()", run.driver.close)
+            if run.since_open_s() < end_s:
+                try:
+                    run.call("open() while unplugged", run.driver.open)
+                except DeviceError:
+                    pass
+                else:
+                    raise NotConforming(f"{name}: opened while the device was unplugged")
             _reopen(run, end_s + margin_s, "replugged")
         while run.since_open_s() < end_s + run.block_s:
             run.read()
