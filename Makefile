@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck imports bench clean wheelhouse readers
+.PHONY: demo test lint typecheck imports bench clean wheelhouse readers examples
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -38,7 +38,15 @@ tests/readers/node/node_modules/.installed: tests/readers/node/package.json
 	touch $@
 readers: $(READERS)/.installed tests/readers/node/node_modules/.installed
 
-test: lint typecheck imports readers
+# The example driver package (examples/): installed into the project's environment, so its
+# entry point registers and its conformance tests run in the same pytest run (testpaths).
+EXAMPLE := examples/fleetdaq-driver-example
+$(VENV)/.examples: $(STAMP) $(EXAMPLE)/pyproject.toml
+	$(PY) -m pip install --quiet --no-deps -e $(EXAMPLE)
+	touch $@
+examples: $(VENV)/.examples
+
+test: lint typecheck imports readers examples
 	$(PY) -m pytest -q --durations=15 -n 2
 
 # What ansible/site.yml installs on every host (README "Deploying a site"): fleetdaq's wheel and

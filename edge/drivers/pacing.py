@@ -41,8 +41,8 @@ class DevicePacer:
         first = self.next_index
         due_ns = self._start_mono + (first + scans - 1) * 1e9 / self.rate_hz
         delay = (due_ns - time.monotonic_ns()) / 1e9
-        if delay > 0 and self._stop.wait(delay):
-            return None
+        if self._stop.is_set() or (delay > 0 and self._stop.wait(delay)):
+            return None  # stopped: a closed device gives no scans, due or not
         self.next_index = first + scans
         return first
 
