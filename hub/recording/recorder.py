@@ -31,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, assert_never
 
 from fleetdaq.contract.cdr import encode
 from fleetdaq.contract.config.site import SiteConfig, effective_yaml
@@ -326,6 +326,8 @@ class Recorder:
                     self._record_message(topic, payload, publish_ns, recv_ns, msgtype)
                 case Stop():
                     pass  # only ends the loop; drained after it, there is nothing to do
+                case _:
+                    assert_never(item)
         except Exception as err:  # no single message may stop the writer
             self._unexpected(err)
 
