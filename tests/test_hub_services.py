@@ -9,6 +9,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from fleetdaq.contract.wire import BatchEncoder, decode_u64, encode_u64
 from fleetdaq.hub.bus import worth_telling
 from fleetdaq.hub.errors import RouterError
 from fleetdaq.hub.recording.data_lock import LOCK_FILE, DataFolderLock
+from fleetdaq.hub.recording.writer_queue import Batch
 from fleetdaq.hub.runtime import HubRuntime
 from fleetdaq.hub.services import ServiceStack
 from fleetdaq.ptp.quality import UNSYNCED
@@ -202,7 +204,7 @@ def test_a_dead_recorder_thread_is_reported_loudly_not_hidden(hub: tuple[HubRunt
     assert runtime.failures() == []
     stream = next(iter(runtime.recorder.routes.values()))
     # Handed straight to the writer thread: a payload whose length cannot even be taken.
-    runtime.recorder._queue.put((0, stream, _Deadly(), time.time_ns(), None))
+    runtime.recorder._queue.put(Batch(stream, cast(bytes, _Deadly()), time.time_ns(), None))
     wait_until(lambda: bool(runtime.failures()), 10, "the failure to be reported")
     ((name, why),) = runtime.failures()
     assert name == "recorder"

@@ -31,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, assert_never
 
 from fleetdaq.contract.cdr import encode
 from fleetdaq.contract.config.site import SiteConfig, effective_yaml
@@ -53,6 +53,16 @@ from fleetdaq.hub.recording.session import EVENTS_TOPIC, RecordingSession, Strea
 from fleetdaq.hub.recording.stream_reports import StreamReports
 from fleetdaq.hub.recording.stream_stats import StreamStats
 from fleetdaq.hub.recording.write_recovery import Held, WriteRecovery
+from fleetdaq.hub.recording.writer_queue import (
+    STOP,
+    Batch,
+    EdgeDrops,
+    EventRecord,
+    Mark,
+    Message,
+    Stop,
+    WriterItem,
+)
 from fleetdaq.hub.routing.router import Router
 from fleetdaq.runtime.systemd import Beat
 from fleetdaq.runtime.threads import NamedThread
@@ -62,8 +72,6 @@ log = logging.getLogger("fleetdaq.recorder")
 Tap = Callable[[str, bytes, int, int, str], None]
 """tap(topic, payload, publish time, receive time, message type)."""
 
-_STOP = object()
-_DATA, _EVENT, _MESSAGE, _DROPS = 0, 1, 2, 3
 _MAX_SEQUENCE = 2**63 - 1
 _VIEW_INTERVAL_S = 0.25
 
@@ -125,7 +133,7 @@ class Recorder:
         self.recovery = WriteRecovery(bus, self._abandon)
         self.lock = threading.Lock()
         """Held by the writer thread while it handles an item; `summary()` takes it."""
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[WriterItem] = queue.SimpleQueue()
         self._decoders: dict[tuple[str, str], BatchDecoder] = {}
         self.session: RecordingSession | None = None
         self._thread = NamedThread(target=self._writer, name="recorder", daemon=True)
@@ -176,7 +184,7 @@ class Recorder:
             mark = decode_mark(att.to_bytes()) if att is not None else None
             payload = sample.payload.to_bytes()
             st.queued_bytes += len(payload)
-            put((_DATA, st, payload, time.time_ns(), mark))
+            put(Batch(st, payload, time.time_ns(), mark))
 
         # One hub: every node's data (keys of unknown nodes refused and counted). Partitioned:
         # each of its own nodes', or the other hubs' batches would cross the mesh to it.
@@ -225,12 +233,12 @@ class Recorder:
         self, topic: str, payload: bytes, publish_ns: int, recv_ns: int, msgtype: str
     ) -> None:
         """Record a message other than a batch (node health...) whose payload was checked."""
-        self._queue.put((_MESSAGE, topic, payload, publish_ns, recv_ns, msgtype))
+        self._queue.put(Message(topic, payload, publish_ns, recv_ns, msgtype))
 
     def _on_event(self, e: Event) -> None:
         """A bus subscriber: the event goes to the writer thread's queue (and an edge's report
         of the batches its full spool dropped goes to the stream's accounting)."""
-        self._queue.put((_EVENT, e, encode(e), e.time_ns, time.time_ns()))
+        self._queue.put(EventRecord(e, encode(e), e.time_ns, time.time_ns()))
         if e.tag == "spool_full":
             st = self.streams.get((e.node, e.source))
             try:
@@ -238,7 +246,7 @@ class Recorder:
             except ValueError:
                 return
             if st is not None and 0 <= first <= last <= _MAX_SEQUENCE:
-                self._queue.put((_DROPS, st, first, last))
+                self._queue.put(EdgeDrops(st, first, last))
 
     def stop(self) -> None:
         """Stop receiving, write everything received, close the files. Idempotent."""
@@ -251,7 +259,7 @@ class Recorder:
         self.bus.emit(logging.INFO, "hub", "stopped", "hub stopping: closing files")
         self._bus_sub.flush()
         if self._thread.is_alive():
-            self._queue.put(_STOP)
+            self._queue.put(STOP)
             self._thread.join()
         with self.lock:
             self._drain()
@@ -289,7 +297,7 @@ class Recorder:
                 item = get(timeout=min(0.2, interval))
             except queue.Empty:
                 item = None
-            if item is _STOP:
+            if isinstance(item, Stop):
                 return
             with self.lock:
                 if item is not None:
@@ -304,23 +312,25 @@ class Recorder:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 return
-            if item is not _STOP:
-                self._handle(item)
+            self._handle(item)
 
-    def _handle(self, item: tuple[Any, ...]) -> None:
+    def _handle(self, item: WriterItem) -> None:
         try:
-            kind = item[0]
-            if kind == _DATA:
-                _, st, payload, recv_ns, mark = item
-                st.queued_bytes -= len(payload)
-                self._record(st, payload, recv_ns, mark)
-            elif kind == _EVENT:
-                self._record_event(*item[2:])
-                self.event_delivery.recorded(item[1])
-            elif kind == _DROPS:
-                self.reports.dropped_by_edge(*item[1:])
-            else:
-                self._record_message(*item[1:])
+            match item:
+                case Batch(st, payload, recv_ns, mark):
+                    st.queued_bytes -= len(payload)
+                    self._record(st, payload, recv_ns, mark)
+                case EventRecord(event, payload, time_ns, recv_ns):
+                    self._record_event(payload, time_ns, recv_ns)
+                    self.event_delivery.recorded(event)
+                case EdgeDrops(st, first, last):
+                    self.reports.dropped_by_edge(st, first, last)
+                case Message(topic, payload, publish_ns, recv_ns, msgtype):
+                    self._record_message(topic, payload, publish_ns, recv_ns, msgtype)
+                case Stop():
+                    pass  # only ends the loop; drained after it, there is nothing to do
+                case _:
+                    assert_never(item)
         except Exception as err:  # no single message may stop the writer
             self._unexpected(err)
 
@@ -393,9 +403,7 @@ class Recorder:
             d = self._decoders[(st.node, st.stream)] = BatchDecoder()
         return d
 
-    def _record(
-        self, st: StreamStats, payload: bytes, recv_ns: int, mark: tuple[int, int | None] | None
-    ) -> None:
+    def _record(self, st: StreamStats, payload: bytes, recv_ns: int, mark: Mark | None) -> None:
         assert self.session is not None
         node, stream = st.node, st.stream
         floor, epoch = mark if mark is not None else (None, None)
