@@ -25,9 +25,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.control.commands import CommandService
 from fleetdaq.hub.control.rules import RuleEngine
 from fleetdaq.hub.live.foxglove.service import FoxgloveLive

@@ -17,7 +17,6 @@ from typing import get_args
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import load_config, parse_config
 from fleetdaq.contract.config.site import SiteConfig, demo_config_path, effective_yaml
 from fleetdaq.contract.errors import ConfigError
 from fleetdaq.contract.schema import Channel, Resolution, float32_misfit
@@ -25,6 +24,7 @@ from fleetdaq.edge.drivers.environment_sim import EnvironmentSimStream
 from fleetdaq.edge.drivers.table import DRIVERS, StreamConfig
 from fleetdaq.edge.drivers.thermocouple_sim import ThermocoupleSimStream
 from fleetdaq.edge.drivers.wave_sim import WaveSimStream
+from fleetdaq.hub.config.load import load_config, parse_config
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO

@@ -39,10 +39,10 @@ from types import TracebackType
 from typing import Any
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.status import StatusService
 from fleetdaq.hub.nodes.refused import RefusedKeys
 from fleetdaq.hub.nodes.watch import NodeWatch

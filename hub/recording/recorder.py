@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.site import SiteConfig, effective_yaml
+from fleetdaq.contract.config.site import effective_yaml
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import EVENTS_STREAM, SiteKeys
 from fleetdaq.contract.messages import EVENT_TYPE, Event
@@ -46,6 +46,7 @@ from fleetdaq.contract.wire import (
     plausible_time,
 )
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.nodes.event_delivery import EventDelivery
 from fleetdaq.hub.nodes.refused import RefusedKeys
 from fleetdaq.hub.read_model import ReadModel, RecorderView
