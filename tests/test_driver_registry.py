@@ -72,16 +72,24 @@ def _python(root: Path, code: str) -> Any:
     """Run `code` in a new process with `root` on its path; what it printed, as JSON."""
     env = {**os.environ, "PYTHONPATH": str(root)}
     done = subprocess.run(
-        [sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code],
+        check=False,
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
 
-def _check(root: Path, site: Path) -> subprocess.CompletedProcess[str]:
+def _fleetdaq(root: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The ``fleetdaq`` command, run with `root` on its path."""
     env = {**os.environ, "PYTHONPATH": str(root)}
     return subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "check", str(site)],
+        [sys.executable, "-m", "fleetdaq", *args],
+        check=False,
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -167,19 +175,12 @@ def test_a_plugin_that_fails_to_import_fails_only_the_site_that_names_it(tmp_pat
     }
     site = tmp_path / "site.yaml"
     site.write_text(_site("broken"))
-    named = _check(tmp_path, site)
+    named = _fleetdaq(tmp_path, "check", str(site))
     assert (named.returncode, named.stdout) == (2, "")
     assert named.stderr == f"{site}: nodes.n1.streams.w: {reason}\n"
-    demo = _check(tmp_path, REPO / "config" / "demo.yaml")
+    demo = _fleetdaq(tmp_path, "check", str(REPO / "config" / "demo.yaml"))
     assert demo.returncode == 0, demo.stderr
-    listed = subprocess.run(
-        [sys.executable, "-m", "fleetdaq", "drivers"],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(tmp_path)},
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    listed = _fleetdaq(tmp_path, "drivers")
     assert listed.returncode == 1
     assert f"broken: refused: {reason}\n" in listed.stdout
     assert "wave_sim: stream driver from fleetdaq 0.1.0" in listed.stdout

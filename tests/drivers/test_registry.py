@@ -11,8 +11,8 @@ from typing import Literal
 import pytest
 
 from fleetdaq.contract.config.load import load_config
-from fleetdaq.contract.errors import DriverError
 from fleetdaq.contract.drivers import DriverKind, driver_registry
+from fleetdaq.contract.errors import DriverError
 from fleetdaq.edge.drivers.table import create_driver
 from tests.procs import REPO
 
