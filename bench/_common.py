@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from fleetdaq.contract.config.load import parse_config
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.wire import BatchEncoder
 from fleetdaq.edge.drivers.wave_sim import WaveSim, WaveSimStream
+from fleetdaq.hub.config.load import parse_config
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.ptp.quality import UNSYNCED
 
 SITE = "bench"

@@ -53,9 +53,9 @@ from _common import (
     t8_stream,
 )
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.wire import decode_batch, read_header
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.session import RecordingSession, topic_of

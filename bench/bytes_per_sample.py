@@ -43,13 +43,14 @@ import numpy as np
 import numpy.typing as npt
 from _common import Progress, emit, rounded
 
-from fleetdaq.contract.config.load import load_config
+from fleetdaq.contract.config.node import StreamConfig
 from fleetdaq.contract.config.site import SiteConfig, demo_config_path
 from fleetdaq.contract.wire import SAMPLE_FORMATS, BatchEncoder
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.shared import SharedDevices
-from fleetdaq.edge.drivers.table import StreamConfig, create_driver
+from fleetdaq.edge.drivers.table import create_driver
 from fleetdaq.hub.config.hub import RecorderConfig
+from fleetdaq.hub.config.load import load_config
 from fleetdaq.hub.recording.session import RecordingSession
 from fleetdaq.ptp.quality import UNSYNCED
 

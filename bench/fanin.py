@@ -129,8 +129,8 @@ def edge_host(config: Path, nodes: list[str], spool: Path, args: argparse.Namesp
     """
     import logging
 
-    from fleetdaq.contract.config.load import parse_config
     from fleetdaq.edge.agent import EdgeAgent
+    from fleetdaq.hub.config.load import parse_config
 
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     stop = threading.Event()

@@ -82,9 +82,9 @@ from _common import (
 )
 from mcap.writer import CompressionType, Writer
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import SAMPLE_BATCH_SCHEMA, SAMPLE_BATCH_TYPE
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.recording.session import topic_of
 
 TARGET_MB_PER_S = 100.0

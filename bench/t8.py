@@ -35,11 +35,11 @@ sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge`
 
 import numpy as np
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.agent import EdgeAgent
 from fleetdaq.edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.sim_ljm import SimLJM
+from fleetdaq.hub.config.load import parse_config
 
 REPO = Path(__file__).resolve().parent.parent
 RATE_HZ = 40_000

@@ -37,12 +37,12 @@ sys.path.remove(str(Path(__file__).resolve().parent))  # never shadow the `edge`
 
 import numpy as np
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.device_time import DeviceTimeFit
 from fleetdaq.edge.drivers.labjack_ljm import LabJackT8Sim
 from fleetdaq.edge.drivers.labjack_t8 import LabJackT8, LabJackT8Stream
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.sim_ljm import SimLJM
+from fleetdaq.hub.config.load import parse_config
 
 RATE_HZ = 10_000
 TARGET_P99_US = 10.0

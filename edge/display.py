@@ -7,7 +7,7 @@ returns one `DisplayLoop` per display: a thread that renders the lines from
 ``latest(stream, channel)`` at `refresh_hz` and sends changed rows to the LCD. A display is a
 sink: when its bus fails it retries a bounded number of times per refresh, then raises an
 event, keeps trying at the refresh rate, and raises another event when it works again; it
-never touches acquisition. Line syntax: `fleetdaq.edge.display_text`.
+never touches acquisition. Line syntax: `fleetdaq.contract.display_text`.
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from fleetdaq.contract.display_text import Latest, parse_line
 from fleetdaq.contract.errors import DriverError
-from fleetdaq.edge.display_text import Latest, parse_line
 from fleetdaq.edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay
 from fleetdaq.edge.drivers.i2cbus import load_smbus2, open_bus
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
-from fleetdaq.edge.drivers.table import DISPLAYS, load_sim
+from fleetdaq.edge.drivers.table import display_sim, load_sim
 from fleetdaq.runtime.threads import NamedThread
 
 if TYPE_CHECKING:
@@ -141,15 +141,18 @@ class DisplayLoop:
 
 def create_displays(node_cfg: NodeConfig, latest: Latest, emit: Emit) -> list[DisplayLoop]:
     """One DisplayLoop per display of the node (not started); a display with `sim:` runs on
-    its simulated transport (from `fleetdaq.edge.drivers.table`), without the LCD's start-up waits.
+    its simulated transport (from the driver registry), without the LCD's start-up waits.
 
     Raises:
         DriverUnavailable: a real (not simulated) display needs smbus2 and it is missing.
     """
     loops = []
     for name, cfg in node_cfg.displays.items():
-        if cfg.sim is not None:
-            _, sim = DISPLAYS[cfg.driver]
+        if not isinstance(cfg, LcdDisplay):  # the one display loop there is drives an HD44780
+            driver = getattr(cfg, "driver", None)
+            raise DriverError(f"displays.{name}: no display loop for driver {driver!r}")
+        sim = display_sim(cfg.driver)
+        if cfg.sim is not None and sim is not None:
             bus = load_sim(sim)(cfg, SYSTEM_TIME)
             loops.append(DisplayLoop(name, cfg, latest, emit, bus, sleep=lambda s: None))
         else:

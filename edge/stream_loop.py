@@ -18,13 +18,13 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from fleetdaq.contract.config.node import SpoolConfig
+from fleetdaq.contract.config.node import SpoolConfig, StreamConfig
 from fleetdaq.contract.errors import DriverError
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchEncoder, encode_mark
 from fleetdaq.edge.device_time import DeviceTimeFit, Restart
 from fleetdaq.edge.drivers.base import Driver
-from fleetdaq.edge.drivers.table import StreamConfig, create_driver
+from fleetdaq.edge.drivers.table import create_driver
 from fleetdaq.edge.event_publisher import EventPublisher
 from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.edge.time_sync import NoTimeSyncMonitor, TimeSyncMonitor

@@ -390,8 +390,8 @@ def _render(imp: _Import, recorder: list[str]) -> str:
 
 def check_site(text: str, source: str) -> None:
     """Raise NotModaqConfig unless `text` passes the same check as `fleetdaq check`."""
-    from fleetdaq.contract.config.load import parse_config
     from fleetdaq.contract.errors import ConfigError
+    from fleetdaq.hub.config.load import parse_config
 
     try:
         parse_config(text, source)

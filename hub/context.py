@@ -11,9 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import HUB, SiteKeys
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.routing.router import Router
 

@@ -33,8 +33,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.hub.composition import ComposedHub, compose, open_context
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.partitions.runtime import partition_data_dir
 from fleetdaq.hub.read_model import HubView
 from fleetdaq.hub.recording.data_lock import DataFolderLock

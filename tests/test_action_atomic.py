@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import EVENT_TYPE, Event, make_event
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed
 from fleetdaq.hub.recording.snapshots import SnapshotBuffer

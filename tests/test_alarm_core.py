@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import ConfigError
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.supervision.alarms.conditions import (
     MAX_FLIPS_PER_BATCH,
     Delayed,

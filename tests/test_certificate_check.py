@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 
 from fleetdaq.certificate_check import check
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.fleet.probe import parse_certificates
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.pki import init, issue_node, issue_partition
 from fleetdaq.runtime.certificate_dates import DAY_NS
 from tests.procs import REPO

@@ -244,9 +244,9 @@ def test_an_edge_loads_no_hub_code_or_hub_dependencies(site: Path, tmp_path: Pat
 def test_the_am_cell_lcd_shows_the_live_thermocouple_temperature(tmp_path: Path):
     """The demo's AM-cell node: its (simulated) 16x2 LCD shows the substrate temperature
     the node is acquiring — the agent feeds its displays from the newest scan."""
-    from fleetdaq.contract.config.load import load_config
     from fleetdaq.contract.config.site import demo_config_path
     from fleetdaq.edge.agent import EdgeAgent
+    from fleetdaq.hub.config.load import load_config
 
     site = load_config(demo_config_path())
     port = free_port()  # nothing listens: the agent runs without a hub

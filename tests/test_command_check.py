@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import OutputCommand
 from fleetdaq.contract.schema import OutputBase
 from fleetdaq.edge.command_check import NodeView, OutputView, check_command
+from fleetdaq.hub.config.load import parse_config
 
 NOW_NS = 1_800_000_000_000_000_000
 NOW_S = 1000.0

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from fleetdaq.contract.config.load import parse_config
-from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.runtime import HubRuntime, PartitionRuntime
 
 SITE = """

@@ -17,14 +17,16 @@ from typing import get_args
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import load_config, parse_config
+from fleetdaq.contract.config import load as node_load
+from fleetdaq.contract.config.node import StreamConfig
 from fleetdaq.contract.config.site import SiteConfig, demo_config_path, effective_yaml
+from fleetdaq.contract.drivers import DriverKind, driver_registry
 from fleetdaq.contract.errors import ConfigError
 from fleetdaq.contract.schema import Channel, Resolution, float32_misfit
 from fleetdaq.edge.drivers.environment_sim import EnvironmentSimStream
-from fleetdaq.edge.drivers.table import DRIVERS, StreamConfig
 from fleetdaq.edge.drivers.thermocouple_sim import ThermocoupleSimStream
 from fleetdaq.edge.drivers.wave_sim import WaveSimStream
+from fleetdaq.hub.config.load import load_config, parse_config
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path("tests/data/config")  # relative to REPO: the CLI runs with cwd=REPO
@@ -302,7 +304,72 @@ def test_several_problems_report_the_first_and_count_the_rest() -> None:
 def test_the_drivers_named_in_errors_are_exactly_the_stream_union_tags() -> None:
     union = get_args(get_args(StreamConfig)[0])
     tags = {get_args(cls.model_fields["driver"].annotation)[0] for cls in union}
-    assert set(DRIVERS) == tags
+    assert set(driver_registry().of_kind(DriverKind.STREAM)) == tags
+
+
+# --- what a node checks, what only the hub checks ------------------------------------------
+
+BASE_SITE = """
+site: s
+nodes:
+  n1:
+    streams:
+      w: {driver: wave_sim, rate_hz: 10, channels: [{name: x}]}
+"""
+NODE_SITE = BASE_SITE + "hub:\n  recorder: {file_duration_s: 30}\n"
+
+
+def test_a_node_and_the_hub_read_the_same_good_file_alike() -> None:
+    node = node_load.parse_config(NODE_SITE, "f")
+    hub = parse_config(NODE_SITE, "f")
+    assert type(node) is SiteConfig
+    assert isinstance(hub, SiteConfig)
+    assert node.endpoints_for("n1") == hub.endpoints_for("n1") == ["tcp/127.0.0.1:7447"]
+    assert node.nodes == hub.nodes
+    assert hub.hub.recorder.file_duration_s == 30
+    assert node.hub.recorder == {"file_duration_s": 30}  # the node never reads it
+
+
+@pytest.mark.parametrize(
+    ("change", "where", "problem"),
+    [
+        ("hub:\n  recorder: {file_duration: 30}\n", "hub.recorder.file_duration", "unknown key"),
+        ("alarms:\n  hot: {channel: n1/w/nope, hi: 1}\n", "alarms.hot", "no channel 'nope'"),
+        ("rules:\n  r: {when: {node: n9, alive: false}, do: [{event: x}]}\n", "rules.r", "n9"),
+        ("hub:\n  snapshot: {seconds: 0}\n", "hub.snapshot.seconds", "greater than 0"),
+    ],
+)
+def test_the_hub_only_sections_are_checked_by_the_hub_not_by_a_node(
+    change: str, where: str, problem: str
+) -> None:
+    text = BASE_SITE + change
+    node_load.parse_config(text, "f")
+    with pytest.raises(ConfigError, match=rf"^f: {re.escape(where)}: .*{re.escape(problem)}"):
+        parse_config(text, "f")
+
+
+@pytest.mark.parametrize(
+    ("change", "where", "problem"),
+    [
+        ("extra: 1\n", "extra", "unknown key"),
+        ("hub:\n  recorders: {}\n", "hub.recorders", "unknown key (did you mean 'recorder'?)"),
+        ("hub:\n  recorder: 5\n", "hub.recorder", "expected a mapping of keys, got 5"),
+        ("alarms: []\n", "alarms", "expected a mapping of keys"),
+        ("hub:\n  listen: [udp/x]\n", "hub.listen[0]", ""),
+        ("hub:\n  universal_alarms: {certificate_expring: false}\n",
+         "hub.universal_alarms.certificate_expring", "did you mean 'certificate_expiring'"),
+        ("security: {tls: true}\n", "hub.listen[0]", "not tls/HOST:PORT"),
+        ("hub:\n  partitions: {p: {listen: [tcp/127.0.0.1:7448], nodes: [zz]}}\n",
+         "hub.partitions.p.nodes[0]", "names no node"),
+    ],
+)  # fmt: skip
+def test_what_a_node_reads_is_checked_by_the_node_and_the_hub_alike(
+    change: str, where: str, problem: str
+) -> None:
+    text = BASE_SITE + change
+    for parse in (node_load.parse_config, parse_config):
+        with pytest.raises(ConfigError, match=rf"^f: {re.escape(where)}: .*{re.escape(problem)}"):
+            parse(text, "f")
 
 
 # --- good files -------------------------------------------------------------------------

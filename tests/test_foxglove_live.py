@@ -21,11 +21,11 @@ import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 
-from fleetdaq.contract.config.load import load_config, parse_config
 from fleetdaq.contract.config.site import demo_config_path
 from fleetdaq.contract.errors import ConfigError
 from fleetdaq.contract.wire import BatchEncoder, read_header
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import load_config, parse_config
 from fleetdaq.hub.errors import HubError
 from fleetdaq.hub.live.foxglove.decimate import INTERVAL_NS, Decimator, Intervals
 from fleetdaq.hub.live.foxglove.messages import StreamMessages

@@ -23,9 +23,9 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.supervision.event_log import EventLog
 from tests.procs import HubClient, Link, Proc, free_port, spooled, stream_view, wait_until

@@ -16,11 +16,11 @@ import pytest
 import zenoh
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event, make_event
 from fleetdaq.contract.wire import BatchEncoder, decode_u64, encode_u64
 from fleetdaq.hub.bus import worth_telling
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.errors import RouterError
 from fleetdaq.hub.recording.data_lock import LOCK_FILE, DataFolderLock
 from fleetdaq.hub.recording.writer_queue import Batch

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.config.node_control import EdgeInterlockConfig
 from fleetdaq.edge.agent import EdgeAgent
 from fleetdaq.edge.interlocks import Change, Interlock, Interlocks
+from fleetdaq.hub.config.load import parse_config
 from tests.procs import free_port, wait_until
 
 NAN = math.nan

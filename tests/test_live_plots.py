@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.wire import BatchEncoder, read_header
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.live import plot_kernels
 from fleetdaq.hub.live.plots import LivePlots
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch

@@ -22,9 +22,9 @@ from prometheus_client.core import (
 from prometheus_client.parser import text_string_to_metric_families
 
 from fleetdaq import __version__
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchEncoder, encode_u64
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.live.metrics import ViewCollector, exposition, reference_metrics, render_metrics
 from fleetdaq.hub.runtime import HubRuntime
 from fleetdaq.ptp.quality import UNSYNCED

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.drivers.labjack_t8 import LabJackT8Stream
 from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8PollStream
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.modaq import NotModaqConfig, check_site, import_modaq
 from tests.procs import REPO
 

@@ -13,12 +13,12 @@ from typing import Any
 import pytest
 
 from fleetdaq.contract.cdr import decode, encode
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import OutputCommand, OutputReply
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.event_publisher import EventPublisher
 from fleetdaq.edge.output_commands import CommandDesk
 from fleetdaq.edge.outputs import QUEUE_LIMIT, OutputService
+from fleetdaq.hub.config.load import parse_config
 from tests.procs import wait_until
 
 SITE = """\

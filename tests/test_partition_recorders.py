@@ -179,7 +179,7 @@ def test_a_snapshot_is_not_asked_of_a_partition_that_keeps_no_buffer_and_that_is
 def test_the_main_hub_asks_no_snapshot_of_the_partitions_its_site_file_switches_off(
     tmp_path: Path,
 ) -> None:
-    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.hub.config.load import parse_config
     from fleetdaq.hub.runtime import HubRuntime
 
     site = parse_config(

@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.live.metrics import render_metrics
 from fleetdaq.hub.partitions.watch import PartitionWatch
 from fleetdaq.hub.read_model import ReadModel, RecorderView, StreamView, from_jsonable, to_jsonable

@@ -21,10 +21,10 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.load import load_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import OutputCommand, make_event
 from fleetdaq.contract.wire import BatchEncoder, encode_u64
+from fleetdaq.hub.config.load import load_config
 from fleetdaq.hub.live.status import query_status
 from fleetdaq.hub.partitions.runtime import partition_key
 from fleetdaq.ptp.quality import UNSYNCED

@@ -10,10 +10,10 @@ from typing import Any
 
 import zenoh
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.event_publisher import EventPublisher
 from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.edge.stream_loop import StreamLoop
+from fleetdaq.hub.config.load import parse_config
 
 SITE = """\
 site: replay

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.routing.refused_traffic import OTHER_PEERS, RefusedTraffic
 from fleetdaq.hub.routing.router import Router

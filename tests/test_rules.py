@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.messages import OutputCommand, OutputReply
 from fleetdaq.contract.wire import BatchEncoder, read_header
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.control.rules import RuleEngine
 from fleetdaq.hub.read_model import AlarmView, HubView, NodeView, ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch

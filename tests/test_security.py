@@ -487,7 +487,7 @@ def test_no_secret_in_the_recording_events_or_logs(tmp_path: Path, monkeypatch: 
     """The SMTP password (from the environment), the private keys and the dashboard's password
     hashes: in no file the hub writes (the MCAP with its attached config, events.log, the
     journal, the outbox) nor in its log."""
-    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.hub.config.load import parse_config
     from fleetdaq.hub.live.web.users import hash_password, write_users
     from fleetdaq.hub.runtime import HubRuntime
 

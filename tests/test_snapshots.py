@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchEncoder, encode_u64
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed
 from fleetdaq.hub.recording.snapshots import OVERHEAD_BYTES, SnapshotBuffer

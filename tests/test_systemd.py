@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.runtime import HubRuntime
 from fleetdaq.runtime.systemd import Beat, Systemd
 from tests.procs import REPO, free_port, wait_until

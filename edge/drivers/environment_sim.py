@@ -11,6 +11,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import Float, StreamBase
 from fleetdaq.edge.drivers.pacing import PacedSim
 
@@ -43,3 +44,6 @@ class EnvironmentSim(PacedSim):
         out: npt.NDArray[np.float64] = base + swing * slow
         out += self._rng.normal(0, 1, (self.scans, len(base))) * noise
         return out
+
+
+PLUGIN = DriverPlugin(DriverKind.STREAM, EnvironmentSimStream, EnvironmentSim)

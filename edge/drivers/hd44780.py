@@ -16,8 +16,9 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
+from fleetdaq.contract.display_text import parse_line
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import Float, Int, Strict
-from fleetdaq.edge.display_text import parse_line
 from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault
 
 RS, E, BACKLIGHT = 0x01, 0x04, 0x08
@@ -134,3 +135,11 @@ class Hd44780Pcf8574:
         port = (nibble & 0x0F) << 4 | self._light | (RS if rs else 0)
         self.bus.write_byte(self.address, port | E)
         self.bus.write_byte(self.address, port)  # E falls: the LCD latches D4-D7
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.DISPLAY,
+    LcdDisplay,
+    Hd44780Pcf8574,
+    "fleetdaq.edge.drivers.sim_smbus:lcd_transport",
+)

@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import AfterValidator, Field, model_validator
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DriverError
 from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase
 from fleetdaq.contract.wire import SampleStatus
@@ -345,3 +346,11 @@ class LabJackT8:
 
     def _event(self, level: int, tag: str, message: str) -> None:
         self._events.append(DriverEvent(level, tag, message))
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.STREAM,
+    LabJackT8Stream,
+    LabJackT8,
+    "fleetdaq.edge.drivers.sim_ljm:t8_transport",
+)

@@ -22,6 +22,7 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import OutputBase
 from fleetdaq.edge.drivers.labjack_ljm import (
     LabJackT8Sim,
@@ -238,3 +239,18 @@ class T8DioDriver(_T8Output):
 
     def write(self, value: float) -> None:
         super().write(1.0 if value >= 0.5 else 0.0)
+
+
+DAC_PLUGIN = DriverPlugin(
+    DriverKind.OUTPUT,
+    LabJackT8DacOutput,
+    T8DacDriver,
+    "fleetdaq.edge.drivers.sim_ljm:t8_transport",
+)
+
+DIO_PLUGIN = DriverPlugin(
+    DriverKind.OUTPUT,
+    LabJackT8DioOutput,
+    T8DioDriver,
+    "fleetdaq.edge.drivers.sim_ljm:t8_transport",
+)

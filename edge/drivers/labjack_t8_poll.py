@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DriverError
 from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase
 from fleetdaq.edge.drivers.base import Block, DriverEvent
@@ -170,3 +171,11 @@ class LabJackT8Poll:
 
     def health(self) -> dict[str, object]:
         return {"late_polls": self.pacer.late, "reconnects": self.reconnects}
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.STREAM,
+    LabJackT8PollStream,
+    LabJackT8Poll,
+    "fleetdaq.edge.drivers.sim_ljm:t8_transport",
+)

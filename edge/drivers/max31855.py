@@ -26,6 +26,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import (
     Channel,
     Float,
@@ -221,3 +222,11 @@ class Max31855(PolledDriver):
         spi, self._spi = self._spi, None
         if spi is not None:
             spi.close()
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.STREAM,
+    Max31855Stream,
+    Max31855,
+    "fleetdaq.edge.drivers.sim_spi:max31855_transport",
+)

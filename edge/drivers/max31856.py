@@ -24,6 +24,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DeviceNotFound
 from fleetdaq.contract.schema import Channel, Float, Resolution, SimFault, StreamBase
 from fleetdaq.contract.wire import SampleStatus
@@ -236,3 +237,11 @@ class Max31856(PolledDriver):
         spi, self._spi = self._spi, None
         if spi is not None:
             spi.close()
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.STREAM,
+    Max31856Stream,
+    Max31856,
+    "fleetdaq.edge.drivers.sim_spi:max31856_transport",
+)

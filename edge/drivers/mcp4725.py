@@ -28,6 +28,7 @@ from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, Field, model_validator
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DeviceError
 from fleetdaq.contract.schema import Float, Int, OutputBase, Strict
 from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault, Smbus2, is_nack, load_smbus2, open_bus
@@ -235,3 +236,11 @@ class Mcp4725Driver:
                         continue
                     raise DeviceError(f"{self.where}: {what}: {err}", err.errno) from err
         raise AssertionError("unreachable")
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.OUTPUT,
+    Mcp4725Output,
+    Mcp4725Driver,
+    "fleetdaq.edge.drivers.sim_smbus:mcp4725_transport",
+)

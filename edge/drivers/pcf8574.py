@@ -28,6 +28,7 @@ from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DeviceError
 from fleetdaq.contract.schema import Int, OutputBase, Strict
 from fleetdaq.edge.drivers.i2cbus import I2cBus, I2cFault, Smbus2, is_nack, load_smbus2, open_bus
@@ -205,3 +206,11 @@ class Pcf8574Driver:
 
     def close(self) -> None:
         self.port.close()
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.OUTPUT,
+    Pcf8574Output,
+    Pcf8574Driver,
+    "fleetdaq.edge.drivers.sim_smbus:pcf8574_transport",
+)

@@ -19,6 +19,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.errors import DeviceError, DeviceNotFound
 from fleetdaq.contract.schema import Channel, Float, Int, Resolution, StreamBase, Strict
 from fleetdaq.contract.wire import SampleStatus
@@ -187,3 +188,11 @@ class Sht3x(PolledDriver):
 
     def extra_health(self) -> dict[str, object]:
         return {"retries": self.retries, "crc_errors": self.crc_errors, "nacks": self.nacks}
+
+
+PLUGIN = DriverPlugin(
+    DriverKind.STREAM,
+    Sht3xStream,
+    Sht3x,
+    "fleetdaq.edge.drivers.sim_smbus:sht3x_transport",
+)

@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import Float, StreamBase
 from fleetdaq.edge.drivers.pacing import PacedSim
 
@@ -54,3 +55,6 @@ class ThermocoupleSim(PacedSim):
             cj = self.cfg.ambient_c + 2.0 + self._rng.normal(0, 0.05, self.scans)
             out[:, 1:] = (np.round(cj * 16) / 16)[:, None]  # 12-bit, 0.0625 °C
         return out
+
+
+PLUGIN = DriverPlugin(DriverKind.STREAM, ThermocoupleSimStream, ThermocoupleSim)

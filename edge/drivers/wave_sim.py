@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import Float, StreamBase
 from fleetdaq.edge.drivers.pacing import PacedSim
 
@@ -84,3 +85,6 @@ class WaveSim(PacedSim):
         t0, dt = self.pacer.seconds_of(first, self.scans)
         t: npt.NDArray[np.float64] = t0 + np.arange(self.scans, dtype=np.float64) * dt
         return self.model.sample(t)
+
+
+PLUGIN = DriverPlugin(DriverKind.STREAM, WaveSimStream, WaveSim)

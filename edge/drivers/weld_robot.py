@@ -22,6 +22,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin
 from fleetdaq.contract.schema import Channel, Float, Int, Name, OutputBase, StreamBase
 from fleetdaq.edge.drivers.base import DriverEvent
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
@@ -171,3 +172,8 @@ class WeldRobotResume:
 
     def close(self) -> None:
         pass
+
+
+SIM_PLUGIN = DriverPlugin(DriverKind.STREAM, WeldRobotSimStream, WeldRobotSim, shared=True)
+
+RESUME_PLUGIN = DriverPlugin(DriverKind.OUTPUT, WeldRobotResumeOutput, WeldRobotResume)

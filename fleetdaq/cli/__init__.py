@@ -12,6 +12,7 @@ COMMANDS: dict[str, str] = {
     "alarms": "fleetdaq.cli.alarms:alarms",
     "check": "fleetdaq.cli.check:check",
     "demo": "fleetdaq.cli.demo:demo",
+    "drivers": "fleetdaq.cli.drivers:drivers",
     "edge": "fleetdaq.cli.edge:edge",
     "export": "fleetdaq.cli.export:export",
     "fleet": "fleetdaq.cli.fleet:fleet",

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 
     from fleetdaq.certificate_check import Checked
     from fleetdaq.contract.config.site import SiteConfig
+    from fleetdaq.hub.config.site import SiteConfig as HubSiteConfig
     from fleetdaq.runtime.security import TlsFiles
 
 F = TypeVar("F", bound=Callable[..., object])
@@ -89,8 +90,21 @@ def hub_options(f: F) -> F:
     return site_option(f)
 
 
-def load_site(path: str | Path) -> SiteConfig:
-    """The validated site file, or one line (file, key path, problem) and exit 2."""
+def load_site(path: str | Path) -> HubSiteConfig:
+    """The site file validated as the hub does (every section), or one line (file, key path,
+    problem) and exit 2."""
+    from fleetdaq.contract.errors import ConfigError
+    from fleetdaq.hub.config.load import load_config
+
+    try:
+        return load_config(path)
+    except ConfigError as err:
+        fail(str(err))
+
+
+def load_node_site(path: str | Path) -> SiteConfig:
+    """The site file validated as a node reads it (`fleetdaq.contract.config.site`: the hub's
+    own sections are checked by the hub), or one line and exit 2."""
     from fleetdaq.contract.config.load import load_config
     from fleetdaq.contract.errors import ConfigError
 

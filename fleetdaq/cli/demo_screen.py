@@ -18,7 +18,7 @@ from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 
-from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.control.layer_waits import LayerWaits
 from fleetdaq.hub.errors import HubError, RouterError
 from fleetdaq.hub.live.web.users import UsersFileError, hash_password, read_users, write_users

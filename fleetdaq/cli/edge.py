@@ -11,7 +11,7 @@ from fleetdaq.cli.common import (
     check_tls,
     fail,
     finish,
-    load_site,
+    load_node_site,
     setup_logging,
     stop_on_signals,
     stop_with_parent,
@@ -48,7 +48,7 @@ def edge(
     stop = stop_on_signals()  # first: a signal during start-up must still stop cleanly
     if with_parent is not None:
         stop_with_parent(with_parent, stop)
-    site = load_site(config)
+    site = load_node_site(config)
     if node not in site.nodes:
         fail(f"{config}: nodes: no node named {node!r} (have: {', '.join(site.nodes)})")
     if connect:

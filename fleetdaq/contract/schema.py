@@ -218,7 +218,8 @@ class StreamBase(Strict):
     """What every stream has, whatever its driver. Each driver's schema extends this."""
 
     driver: str
-    """The driver's name in `fleetdaq.edge.drivers.table` (each schema narrows it to its own)."""
+    """The driver's name in the driver registry (`fleetdaq.contract.drivers`; each schema
+    narrows it to its own)."""
     rate_hz: Annotated[Float, Field(gt=0, le=1_000_000)]
     """Scan rate: every channel is sampled once per scan."""
     scans_per_batch: Annotated[Int, Field(ge=1, le=1_000_000)] | None = None
@@ -297,8 +298,8 @@ class OutputBase(Strict):
     """
 
     driver: str
-    """The driver's name in `fleetdaq.edge.drivers.table.OUTPUTS` (each schema narrows it to its
-    own)."""
+    """The driver's name in the driver registry (`fleetdaq.contract.drivers`; each schema
+    narrows it to its own)."""
     kind: Literal["analog", "digital"]
     """Fixed by drivers that can only be one (a DAC is analog, a relay pin digital)."""
     unit: str = ""

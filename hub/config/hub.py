@@ -1,6 +1,8 @@
-"""What only the hub uses from the site file: its router endpoints, the recorder, the universal
-alarms and notifications (`fleetdaq.hub.config.notify`). It lives in `fleetdaq.contract.config`
-because the whole site file is validated on every machine."""
+"""The site file's `hub:` section as the hub validates it: `HubConfig` narrows the contract's
+`HubBase` (router endpoints, partitions, data folders, universal alarms: what every machine
+reads) with what only the hub uses: the recorder, notifications (`fleetdaq.hub.config.notify`),
+cross-node interlocks (`fleetdaq.hub.config.control`), the snapshot buffer and the dashboard
+(`fleetdaq.hub.config.dashboard`)."""
 
 from __future__ import annotations
 
@@ -8,8 +10,9 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from fleetdaq.contract.schema import Endpoints, Float, Int, Name, Strict
-from fleetdaq.hub.config.alarms import Severity, UniversalAlarms
+from fleetdaq.contract.config.hubs import HubBase, PartitionBase
+from fleetdaq.contract.config.universal_alarms import Severity
+from fleetdaq.contract.schema import Float, Int, Name, Strict
 from fleetdaq.hub.config.control import InterlockConfig, RuleName
 from fleetdaq.hub.config.dashboard import DashboardConfig
 from fleetdaq.hub.config.notify import NotifyConfig
@@ -55,46 +58,25 @@ class SnapshotConfig(Strict):
     merged)."""
 
 
-NodePattern = Annotated[str, Field(pattern=r"^[a-z0-9_*?\[\]!-]{1,63}$")]
-"""A node name or an fnmatch pattern over node names."""
+class PartitionConfig(PartitionBase):
+    """A partition hub (`fleetdaq hub --partition NAME`), with its own snapshot bounds."""
 
-
-class PartitionConfig(Strict):
-    """A partition hub (`fleetdaq hub --partition NAME`): its own router, meshed with the main
-    hub's and the other partitions', recording and acking only the streams of its nodes."""
-
-    listen: Endpoints
-    """Its router's endpoints: its nodes connect here, and so do the routers of the hubs listed
-    after it (the main hub first, then the partitions in file order)."""
-    nodes: Annotated[list[NodePattern], Field(min_length=1)]
-    """Node names or fnmatch patterns (``cell-*``); every node they match is this hub's."""
-    data_dir: str | None = None
-    """Recording root of this hub (default: ``<the main hub's data_dir>/<partition name>``, so
-    two hubs on one machine never share a session folder; `fleetdaq hub --data` overrides)."""
     snapshot: SnapshotConfig | None = None
     """This hub's snapshot buffer, when its machine needs other bounds than the main hub's
     (default: ``hub.snapshot``). Off here, a snapshot asked of the site is not asked of this hub
     (the reply says it keeps none; not a failure)."""
 
 
-class HubConfig(Strict):
-    listen: Endpoints = ["tcp/127.0.0.1:7447"]
-    """The embedded router's endpoints; edges connect to these unless a node says otherwise."""
+class HubConfig(HubBase):
+    """The `hub:` section with the hub's own settings validated in full."""
+
     partitions: dict[Name, PartitionConfig] = {}
     """More hubs, each recording a slice of the nodes (`PartitionConfig`); nodes no partition
     names are the main hub's. Empty: one hub records everything."""
-    data_dir: str | None = None
-    """Recording root. Default: the per-system location of `fleetdaq.runtime.paths.default_data_dir`
-    (never the current directory); `fleetdaq hub --data` overrides."""
     recorder: RecorderConfig = RecorderConfig()
-    universal_alarms: UniversalAlarms = UniversalAlarms()
-    """Alarms every site gets without config; tune or switch off (`false`) each."""
     notify: NotifyConfig = NotifyConfig()
     interlocks: dict[RuleName, InterlockConfig] = {}
     """Cross-node interlocks, evaluated on the hub (`fleetdaq.hub.config.control`)."""
     snapshot: SnapshotConfig = SnapshotConfig()
     dashboard: DashboardConfig = DashboardConfig()
     """The dashboard, /metrics and the Foxglove live view (`fleetdaq.hub.config.dashboard`)."""
-    alarm_journal: str | None = None
-    """Where alarm states and the ack/shelve audit are kept across restarts (default:
-    `<data_dir>/alarms.journal`)."""

@@ -12,8 +12,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
+from fleetdaq.contract.config.universal_alarms import Severity
 from fleetdaq.contract.schema import NAME, Float, Int, Strict
-from fleetdaq.hub.config.alarms import Severity
 
 EMAIL = re.compile(r"^[^@\s<>,;:\"()\[\]\\]+@[A-Za-z0-9.-]+$")
 ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

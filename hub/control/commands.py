@@ -27,7 +27,6 @@ from collections.abc import Callable
 from typing import Any
 
 from fleetdaq.contract.cdr import decode, encode
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import (
@@ -38,6 +37,7 @@ from fleetdaq.contract.messages import (
     OutputReply,
 )
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.read_model import HubView, ReadModel, to_jsonable
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import commands_topic

@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.plots import LivePlots
 
 ROBOT_DRIVER = "weld_robot_sim"

@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.bus import EventBus
@@ -46,6 +45,7 @@ from fleetdaq.hub.config.control import (
     RuleConfig,
     SetAction,
 )
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.control.commands import CommandService
 from fleetdaq.hub.read_model import HubView, ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.wire import batch_values
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live import plot_kernels
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 

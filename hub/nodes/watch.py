@@ -21,12 +21,12 @@ from typing import Any
 import zenoh
 
 from fleetdaq.contract.cdr import decode
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import Kind, SiteKeys
 from fleetdaq.contract.messages import NODE_HEALTH_TYPE, Event, NodeHealth
 from fleetdaq.contract.wire import decode_event_mark, plausible_time
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.nodes.event_delivery import EventDelivery, Verdict
 from fleetdaq.hub.nodes.refused import RefusedKeys
 from fleetdaq.hub.read_model import NodeView, ReadModel

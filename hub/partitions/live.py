@@ -30,11 +30,11 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchDecoder, SampleFormat
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.foxglove.service import FoxgloveLive
 from fleetdaq.hub.live.plots import LivePlots
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch

@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus

@@ -15,11 +15,11 @@ from typing import Any
 import zenoh
 
 from fleetdaq.contract.cdr import decode
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event, NodeHealth
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.nodes.watch import MAX_PAYLOAD_BYTES
 from fleetdaq.hub.partitions.runtime import partition_event_node, partition_key
 from fleetdaq.hub.read_model import (

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any, assert_never
 
 from fleetdaq.contract.cdr import encode
-from fleetdaq.contract.config.site import SiteConfig, effective_yaml
+from fleetdaq.contract.config.site import effective_yaml
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import EVENTS_STREAM, SiteKeys
 from fleetdaq.contract.messages import EVENT_TYPE, Event
@@ -46,6 +46,7 @@ from fleetdaq.contract.wire import (
     plausible_time,
 )
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.read_model import ReadModel, RecorderView
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.seams import EventAcks, Refusals

@@ -33,11 +33,12 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig, effective_yaml
+from fleetdaq.contract.config.site import effective_yaml
 from fleetdaq.contract.messages import Event
 from fleetdaq.contract.wire import plausible_time
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.hub import SnapshotConfig
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.session import RecordingSession, topic_of

@@ -35,8 +35,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import HUB, SiteKeys
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.runtime.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX
 
 OPERATOR_SERVICES = (

@@ -8,7 +8,7 @@ from typing import Any
 
 import zenoh
 
-from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.errors import RouterError
 from fleetdaq.hub.routing.acl import access_control
 from fleetdaq.hub.routing.refused_traffic import RefusedTraffic

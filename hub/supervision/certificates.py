@@ -19,8 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.periodic import Periodic
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.runtime.certificate_dates import (

@@ -7,12 +7,12 @@ import logging
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import ConfigError
 from fleetdaq.edge.display import DisplayLoop, create_displays, parse_line
 from fleetdaq.edge.drivers.hd44780 import Hd44780Pcf8574, LcdDisplay, lcd_bytes
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.sim_smbus import SimLcd, SimSmbus2, lcd_transport
+from fleetdaq.hub.config.load import parse_config
 
 NODE = """\
 site: s

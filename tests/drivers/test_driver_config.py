@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import ConfigError
+from fleetdaq.hub.config.load import parse_config
 
 HEAD = "site: s\nnodes:\n  n:\n    streams:\n"
 

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.config.node import SpoolConfig
 from fleetdaq.contract.errors import (
     ConfigError,
@@ -34,6 +33,7 @@ from fleetdaq.edge.drivers.sim_ljm import SimLJM, errorcodes
 from fleetdaq.edge.event_publisher import EventPublisher
 from fleetdaq.edge.spool import StreamSpool
 from fleetdaq.edge.stream_loop import StreamLoop
+from fleetdaq.hub.config.load import parse_config
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 from tests.procs import REPO, wait_until
@@ -462,7 +462,7 @@ ctypes.CDLL = NoLibLabJackM
 """
 CREATE_T8_DRIVERS = """
 import sys
-from fleetdaq.contract.config.load import parse_config
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.edge.drivers.table import create_driver
 from fleetdaq.contract.errors import DriverUnavailable
 

@@ -10,7 +10,6 @@ import threading
 
 import numpy as np
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.device_time import DeviceTimeFit
 from fleetdaq.edge.drivers.base import Block
 from fleetdaq.edge.drivers.labjack_t8_poll import LabJackT8Poll, LabJackT8PollStream
@@ -18,6 +17,7 @@ from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.shared import SharedDevices
 from fleetdaq.edge.drivers.sim_ljm import SimLJM
 from fleetdaq.edge.drivers.table import create_driver
+from fleetdaq.hub.config.load import parse_config
 
 SITE = """\
 site: s

@@ -10,7 +10,6 @@ import logging
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import DeviceNotFound, DriverUnavailable
 from fleetdaq.contract.wire import SampleStatus
 from fleetdaq.edge.drivers.max31855 import (
@@ -21,6 +20,7 @@ from fleetdaq.edge.drivers.max31855 import (
 )
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.table import create_driver
+from fleetdaq.hub.config.load import parse_config
 from tests.drivers.fakes import DATA, FakeSpiDev
 
 TABLE = json.loads((DATA / "max31855.json").read_text())

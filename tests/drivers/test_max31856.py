@@ -7,7 +7,6 @@ import json
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import ConfigError, DeviceNotFound
 from fleetdaq.contract.wire import SampleStatus
 from fleetdaq.edge.drivers.max31856 import (
@@ -19,6 +18,7 @@ from fleetdaq.edge.drivers.max31856 import (
 )
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.table import create_driver
+from fleetdaq.hub.config.load import parse_config
 from tests.drivers.fakes import DATA, FakeSpiDev
 
 TABLE = json.loads((DATA / "max31856.json").read_text())

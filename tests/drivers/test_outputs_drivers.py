@@ -11,7 +11,6 @@ from typing import Any
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import DeviceDisconnected, DeviceError
 from fleetdaq.contract.schema import OutputBase
 from fleetdaq.edge.drivers.labjack_t8_out import T8DacDriver, T8DioDriver, T8Watchdog
@@ -31,6 +30,7 @@ from fleetdaq.edge.drivers.sim_smbus import SimMcp4725, SimPcf8574, SimSmbus2
 from fleetdaq.edge.drivers.table import create_driver, create_output
 from fleetdaq.edge.drivers.weld_cell import WeldCell
 from fleetdaq.edge.drivers.weld_robot import WeldRobotResume
+from fleetdaq.hub.config.load import parse_config
 from tests.drivers.fakes import DATA
 
 MCP = json.loads((DATA / "mcp4725.json").read_text())

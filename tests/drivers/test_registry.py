@@ -11,8 +11,9 @@ from typing import Literal
 import pytest
 
 from fleetdaq.contract.config.load import load_config
+from fleetdaq.contract.drivers import DriverKind, driver_registry
 from fleetdaq.contract.errors import DriverError
-from fleetdaq.edge.drivers.table import DRIVERS, create_driver
+from fleetdaq.edge.drivers.table import create_driver
 from tests.procs import REPO
 
 VENDOR = ("spidev", "labjack", "smbus2")
@@ -53,9 +54,13 @@ def test_running_the_demo_sites_simulated_drivers_loads_no_vendor_library() -> N
     assert _loaded_vendor_modules(code) == []
 
 
-def test_every_row_of_the_driver_table_names_its_own_schema() -> None:
-    for name, spec in DRIVERS.items():
-        assert spec.schema.model_fields["driver"].annotation == Literal[name], name
+def test_every_registered_driver_names_its_own_schema() -> None:
+    registry = driver_registry()
+    assert registry.refused == {}
+    assert len(registry.of_kind(DriverKind.STREAM)) >= 9
+    for name, found in registry.found.items():
+        assert found.plugin.schema.model_fields["driver"].annotation == Literal[name], name
+        assert found.origin.dist.startswith("fleetdaq ")
 
 
 def test_an_unknown_driver_name_is_a_driver_error() -> None:

@@ -9,7 +9,6 @@ import json
 
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import DeviceNotFound
 from fleetdaq.contract.wire import SampleStatus
 from fleetdaq.edge.drivers.pacing import VirtualTime
@@ -22,6 +21,7 @@ from fleetdaq.edge.drivers.sht3x import (
     encode_sht3x,
 )
 from fleetdaq.edge.drivers.sim_smbus import SimI2cMsg, SimSht3x, SimSMBus, SimSmbus2
+from fleetdaq.hub.config.load import parse_config
 from tests.dev_extra import vendor_module
 from tests.drivers.fakes import DATA
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.edge.drivers.pacing import VirtualTime
 from fleetdaq.edge.drivers.shared import SharedDevices
 from fleetdaq.edge.drivers.table import create_driver, create_output
 from fleetdaq.edge.drivers.weld_cell import WeldCell
+from fleetdaq.hub.config.load import parse_config
 
 S = 1_000_000_000
 

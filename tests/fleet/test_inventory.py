@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.config.load import load_config
 from fleetdaq.fleet.errors import InventoryError
 from fleetdaq.fleet.inventory import Host, load_inventory
 from fleetdaq.fleet.layout import layout_for
 from fleetdaq.fleet.site_match import mismatches
+from fleetdaq.hub.config.load import load_config
 from tests.procs import REPO
 
 # Nested children, vars at every level, a host in two groups at one depth (priority decides),

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.config.load import load_config, parse_config
 from fleetdaq.contract.errors import ConfigError
+from fleetdaq.hub.config.load import load_config, parse_config
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "config"
 SITE = """\

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from argon2 import PasswordHasher
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.config.security import Role
 from fleetdaq.contract.wire import BatchEncoder, read_header
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.live.plots import LivePlots
 from fleetdaq.hub.live.web.parts import HubParts
 from fleetdaq.hub.live.web.service import WebService

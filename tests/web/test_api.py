@@ -263,7 +263,7 @@ def test_a_taken_port_fails_the_start_with_one_line(make_web: MakeWeb):
 
 
 def _site_with(web: Web, cfg: Any) -> Any:
-    from fleetdaq.contract.config.load import parse_config
+    from fleetdaq.hub.config.load import parse_config
     from tests.web.conftest import SITE
 
     text = SITE.format(users=web.users_file, open_view="true", metrics="true", tls="")

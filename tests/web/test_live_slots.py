@@ -12,8 +12,8 @@ from typing import Any
 import aiohttp
 import pytest
 
-from fleetdaq.contract.config.load import parse_config
 from fleetdaq.contract.errors import ConfigError
+from fleetdaq.hub.config.load import parse_config
 from tests.web.conftest import Http, Web
 from tests.web.test_api import _receive
 

@@ -1,6 +1,10 @@
-"""Reading a site file: YAML (with duplicate keys caught) into `SiteConfig`, and every mistake
+"""Reading a site file: YAML (with duplicate keys caught) into a site model, and every mistake
 into one line: ``file: key.path: problem`` (``file:LINE: ...`` where the line is known: YAML
-syntax errors and duplicate keys)."""
+syntax errors and duplicate keys).
+
+`load_config` / `parse_config` give the contract's `SiteConfig` (what a node reads);
+`load_site` / `parse_site` take the model, so the hub's loader (`fleetdaq.hub.config.load`)
+validates its own, fuller schema with the same messages."""
 
 from __future__ import annotations
 
@@ -8,19 +12,17 @@ import difflib
 import re
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from fleetdaq.contract.config.site import SiteConfig
+from fleetdaq.contract.drivers import DriverKind, driver_registry
 from fleetdaq.contract.errors import ConfigError
 from fleetdaq.contract.schema import CHANNEL_NAME
-from fleetdaq.edge.drivers.table import DRIVERS, OUTPUTS
 
-_ALARM_TAGS = ("channel", "stream", "node", "hub")
-_CONTROL_TAGS = ("channel", "alarm", "node", "output", "all", "any", "not", "set", "pulse",
-                 "record", "event")  # fmt: skip
+Site = TypeVar("Site", bound=SiteConfig)
 _KEY_PATH = re.compile(r"^([a-z_]+(?:\.[A-Za-z0-9_/-]+|\[\d+\])*): (.*)$", re.S)
 
 
@@ -101,32 +103,31 @@ def _path(parts: tuple[str | int, ...] | list[str | int]) -> str:
     return "".join(out) or "(top level)"
 
 
-def _user_loc(loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
-    """Pydantic's error location as the user wrote it: without the union tag and `[key]`."""
+def _user_loc(loc: tuple[int | str, ...], schema: type[SiteConfig]) -> tuple[int | str, ...]:
+    """Pydantic's error location as the user wrote it: without union tags and `[key]`."""
     out: list[int | str] = []
     for i, item in enumerate(loc):
         if item == "[key]":
             continue  # the error is about a mapping key itself; the path already ends with it
-        if i == 4 and loc[0] == "nodes" and loc[2] == "streams" and item in DRIVERS:
+        if schema.union_tag_at(loc, i):
             continue  # pydantic puts the union tag in the path; the user never wrote it
-        if i == 4 and loc[0] == "nodes" and loc[2] == "outputs" and item in OUTPUTS:
-            continue
-        if i == 2 and loc[0] == "alarms" and item in _ALARM_TAGS:
-            continue  # likewise the alarm's kind
-        prev = loc[i - 1] if i else None
-        parent = loc[i - 2] if i > 1 else None
-        in_list = isinstance(prev, int) and parent in ("all", "any", "do", "on_clear")
-        if item in _CONTROL_TAGS and (prev in ("when", "precondition", "not") or in_list):
-            continue  # and a condition's or action's kind
         out.append(item)
     return tuple(out)
 
 
-def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+def _tagged(model: type[BaseModel], tag: str) -> bool:
+    """Whether `tag` picks `model` in a union: its `driver:` Literal, or a field of that name."""
+    driver = model.model_fields.get("driver")
+    if driver is not None and get_origin(driver.annotation) is Literal:
+        return tag in get_args(driver.annotation)
+    return tag in model.model_fields
+
+
+def _model_at(loc: tuple[int | str, ...], schema: type[SiteConfig]) -> type[BaseModel] | None:
     """The model validating the mapping at pydantic location `loc` (for "did you mean"): found by
-    following field annotations down from `SiteConfig`, mapping keys (node and stream names)
-    skipped, a stream's schema picked by its driver tag."""
-    model: type[BaseModel] | None = SiteConfig
+    following field annotations down from the site model, mapping keys (node and stream names)
+    skipped, a union's member picked by its tag."""
+    model: type[BaseModel] | None = schema
     i = 0
     while i < len(loc) and model is not None:
         key = loc[i]
@@ -143,9 +144,8 @@ def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
         candidates = _models_in(annotation)
         if len(candidates) > 1:  # a discriminated union: pydantic puts the tag next
             tag = str(loc[i]) if i < len(loc) else ""
-            spec = DRIVERS.get(tag) or OUTPUTS.get(tag)
-            by_field = [m for m in candidates if tag in m.model_fields]
-            model = spec.schema if spec is not None else (by_field[0] if by_field else None)
+            picked = [m for m in candidates if _tagged(m, tag)]
+            model = picked[0] if picked else None
             i += 1
         else:
             model = candidates[0] if candidates else None
@@ -188,8 +188,8 @@ def _short(value: object) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _unknown_key(loc: tuple[int | str, ...]) -> str:
-    model = _model_at(loc[:-1])
+def _unknown_key(loc: tuple[int | str, ...], schema: type[SiteConfig]) -> str:
+    model = _model_at(loc[:-1], schema)
     if model is None:
         return "unknown key"
     allowed = list(model.model_fields)
@@ -240,12 +240,28 @@ def _limit(kind: str, ctx: dict[str, Any], got: str) -> str | None:
     return None
 
 
-def _describe(err: dict[str, Any]) -> str:
+def _driver_problem(kind: str, loc: tuple[int | str, ...], ctx: dict[str, Any]) -> str | None:
+    """Why a driver a site names is not there, when its plugin was refused (failed to load, ...)."""
+    registry = driver_registry()
+    if kind == "union_tag_invalid":
+        return registry.problem(str(ctx.get("tag")))
+    if kind == "literal_error" and loc and loc[-1] == "driver":
+        return registry.problem(str(ctx.get("input", "")))
+    return None
+
+
+def _describe(err: dict[str, Any], schema: type[SiteConfig]) -> str:
     kind = str(err["type"])
     loc: tuple[int | str, ...] = tuple(err["loc"])
     ctx: dict[str, Any] = err.get("ctx") or {}
     got = _short(err.get("input"))
-    names = OUTPUTS if len(loc) > 2 and loc[2] == "outputs" else DRIVERS
+    refused = _driver_problem(kind, loc, {**ctx, "input": err.get("input")})
+    if refused is not None:
+        return refused
+    section = loc[2] if len(loc) > 2 else "streams"
+    names = driver_registry().of_kind(
+        DriverKind.OUTPUT if section == "outputs" else DriverKind.STREAM
+    )
     fixed = {
         "missing": "required key is missing",
         "union_tag_invalid": (
@@ -263,7 +279,7 @@ def _describe(err: dict[str, Any]) -> str:
     if limit is not None:
         return limit
     if kind == "extra_forbidden":
-        return _unknown_key(loc)
+        return _unknown_key(loc, schema)
     if kind == "string_pattern_mismatch":
         return _bad_name(loc, err.get("input"), ctx.get("pattern"))
     msg = str(err["msg"]).removeprefix("Value error, ")
@@ -277,7 +293,13 @@ def _one_line(text: str) -> str:
 
 
 def parse_config(text: str, source: str) -> SiteConfig:
-    """Validate the text of a site file. `source` names it in errors."""
+    """Validate the text of a site file as a node reads it. `source` names it in errors."""
+    return parse_site(text, source, SiteConfig)
+
+
+def parse_site(text: str, source: str, schema: type[Site]) -> Site:
+    """Validate the text of a site file against `schema` (the contract's `SiteConfig` or a
+    subclass). `source` names it in errors. Raises ConfigError with one line."""
     try:
         raw = _load_yaml(text, source)
     except yaml.YAMLError as err:
@@ -300,13 +322,13 @@ def parse_config(text: str, source: str) -> SiteConfig:
             )
         )
     try:
-        return SiteConfig.model_validate(raw)
+        return schema.model_validate(raw)
     except ValidationError as err:
         errors = err.errors()
         first = errors[0]
         more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-        where = _path(list(_user_loc(tuple(first["loc"]))))
-        what = _describe(dict(first))
+        where = _path(list(_user_loc(tuple(first["loc"]), schema)))
+        what = _describe(dict(first), schema)
         nested = _KEY_PATH.match(what)
         if nested:  # a check of a whole mapping names the key path below it
             below = nested.group(1)
@@ -316,7 +338,13 @@ def parse_config(text: str, source: str) -> SiteConfig:
 
 
 def load_config(path: str | Path) -> SiteConfig:
-    """Read and validate a site file. Raises ConfigError with one line: file, key path, problem."""
+    """Read and validate a site file as a node reads it. Raises ConfigError with one line: file,
+    key path, problem."""
+    return load_site(path, SiteConfig)
+
+
+def load_site(path: str | Path, schema: type[Site]) -> Site:
+    """Read a site file and validate it against `schema`. Raises ConfigError with one line."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -326,4 +354,4 @@ def load_config(path: str | Path) -> SiteConfig:
         raise ConfigError(f"{p}: is a directory, expected a YAML file") from None
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"{p}: cannot read: {err}") from None
-    return parse_config(text, str(p))
+    return parse_site(text, str(p), schema)

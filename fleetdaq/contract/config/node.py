@@ -1,17 +1,22 @@
 """An edge machine in the site file: its spool, its clock, its streams, displays, outputs,
 interlocks and control settings.
 
-Each stream's and output's schema comes from its driver's module through
-`fleetdaq.edge.drivers.table`.
+Each stream's, output's and display's schema comes from its driver's module through the driver
+registry (`fleetdaq.contract.drivers`): `StreamConfig`, `OutputConfig` and `DisplayConfig` are
+the unions of what is installed, picked by the config's `driver:` value.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import functools
+import operator
+from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, BeforeValidator, Field, model_validator
 
 from fleetdaq.contract.config.node_control import ControlConfig, EdgeInterlockConfig
+from fleetdaq.contract.display_text import parse_line
+from fleetdaq.contract.drivers import DriverKind, driver_registry
 from fleetdaq.contract.schema import (
     Endpoints,
     Float,
@@ -24,9 +29,37 @@ from fleetdaq.contract.schema import (
     ros_token,
     ros_token_collision,
 )
-from fleetdaq.edge.display_text import parse_line
-from fleetdaq.edge.drivers.hd44780 import LcdDisplay
-from fleetdaq.edge.drivers.table import OutputConfig, StreamConfig
+
+
+def _union(kind: DriverKind) -> object:
+    """The schemas of one kind as one type: pydantic picks the schema by its `driver:` value
+    (a single schema stands alone, so its own error for a wrong name is kept)."""
+    schemas = [p.schema for p in driver_registry().of_kind(kind).values()]
+    if not schemas:
+        return Annotated[object, BeforeValidator(functools.partial(_none_installed, kind))]
+    if len(schemas) == 1:
+        return schemas[0]
+    return Annotated[functools.reduce(operator.or_, schemas), Field(discriminator="driver")]
+
+
+def _none_installed(kind: DriverKind, value: object) -> object:
+    raise ValueError(
+        f"no {kind} driver is installed (none registers in the fleetdaq.drivers entry points: "
+        "is fleetdaq itself installed, e.g. pip install -e .?)"
+    )
+
+
+if TYPE_CHECKING:
+    StreamConfig = StreamBase
+    OutputConfig = OutputBase
+    DisplayConfig = BaseModel
+else:
+    StreamConfig = _union(DriverKind.STREAM)
+    """Any stream's config."""
+    OutputConfig = _union(DriverKind.OUTPUT)
+    """Any output's config."""
+    DisplayConfig = _union(DriverKind.DISPLAY)
+    """Any display's config."""
 
 
 class SpoolConfig(Strict):
@@ -95,7 +128,7 @@ class NodeConfig(Strict):
     spool: SpoolConfig = SpoolConfig()
     clock: ClockConfig = ClockConfig()
     streams: Annotated[dict[StreamName, StreamConfig], Field(min_length=1)]
-    displays: dict[StreamName, LcdDisplay] = {}
+    displays: dict[StreamName, DisplayConfig] = {}
     """Character displays on this node showing its live values (edge/display.py)."""
     outputs: dict[Name, OutputConfig] = {}
     """Analog and digital outputs commanded through the hub (edge/outputs.py)."""
@@ -116,7 +149,7 @@ class NodeConfig(Strict):
     @model_validator(mode="after")
     def _displays_show_known_channels(self) -> NodeConfig:
         for name, display in self.displays.items():
-            for i, line in enumerate(display.lines):
+            for i, line in enumerate(getattr(display, "lines", ())):
                 for stream, channel in parse_line(line).references:
                     cfg = self.streams.get(stream)
                     if cfg is None:

@@ -1,7 +1,7 @@
 """Control settings: the site's ceiling on a command's age (`commands:`), and a node's own
 (`nodes.N.control:`): the dead-man safe state, its command age and edge interlocks.
 
-The outputs themselves are in each driver's module (`fleetdaq.edge.drivers.table.OUTPUTS`).
+The outputs themselves are in each driver's module (found through `fleetdaq.contract.drivers`).
 """
 
 from __future__ import annotations

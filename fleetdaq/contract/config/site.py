@@ -1,36 +1,42 @@
-"""The whole site file: the hub and every node."""
+"""The whole site file as every machine reads it: the site, every node, the routers they connect
+to, security and the commands' ceiling (`SiteConfig`).
+
+The hub-only sections (the site's `alarms:` and `rules:`, and the hub's own keys in `hub:`) are
+known keys here, so a misspelt key is an error on any machine, but only the hub's schema,
+`fleetdaq.hub.config.site.SiteConfig` (a subclass), checks their contents and what they name."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from fnmatch import fnmatchcase
 from importlib.resources import files
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import yaml
 from pydantic import Field, model_validator
 
+from fleetdaq.contract.config.hubs import HubBase
 from fleetdaq.contract.config.node import NodeConfig
 from fleetdaq.contract.config.node_control import CommandsConfig
 from fleetdaq.contract.config.security import SecurityConfig
+from fleetdaq.contract.drivers import driver_registry
 from fleetdaq.contract.schema import NAME, NodeName, Strict, ros_token, ros_token_collision
-from fleetdaq.hub.config.alarms import AlarmName, AlarmSpec, alarm_names
-from fleetdaq.hub.config.control import RuleConfig, RuleName, referenced
-from fleetdaq.hub.config.hub import HubConfig
 
 
 class SiteConfig(Strict):
-    """The whole site file."""
+    """The whole site file, as a node reads it."""
 
     site: Annotated[str, Field(pattern=NAME)]
     description: str = ""
-    hub: HubConfig = HubConfig()
+    hub: HubBase = HubBase()
     nodes: Annotated[dict[NodeName, NodeConfig], Field(min_length=1)]
-    alarms: dict[AlarmName, AlarmSpec] = {}
-    """The site's own alarms (`fleetdaq.hub.config.alarms`); universal ones:
-    `hub.universal_alarms`."""
-    rules: dict[RuleName, RuleConfig] = {}
-    """Control rules evaluated on the hub (`fleetdaq.hub.config.control`)."""
+    alarms: Mapping[str, object] = {}
+    """The site's own alarms (`fleetdaq.hub.config.alarms`; the hub checks them); universal
+    ones: `hub.universal_alarms`."""
+    rules: Mapping[str, object] = {}
+    """Control rules evaluated on the hub (`fleetdaq.hub.config.control`; the hub checks
+    them)."""
     commands: CommandsConfig = CommandsConfig()
     """The site's ceiling on a command's age (`fleetdaq.contract.config.node_control`)."""
     security: SecurityConfig = SecurityConfig()
@@ -92,6 +98,15 @@ class SiteConfig(Strict):
                 )
         return self
 
+    @classmethod
+    def union_tag_at(cls, loc: tuple[int | str, ...], i: int) -> bool:
+        """Whether `loc[i]`, in a validation error's location, is the tag of a union pydantic
+        put there (the user never wrote it): a stream's or output's driver name. The hub's
+        schema adds its own unions (alarm kinds, conditions and actions)."""
+        if i == 4 and loc[0] == "nodes" and loc[2] in ("streams", "outputs", "displays"):
+            return loc[i] in driver_registry().found
+        return False
+
     def command_age_limit_s(self, node: str) -> float:
         """The oldest a command to `node` may be (either way of its clock), in seconds: its
         `control.max_command_age_s`, never above the site's `commands.max_age_s`."""
@@ -113,59 +128,6 @@ class SiteConfig(Strict):
                     f"(every link is mutual TLS: write tls/{endpoint.partition('/')[2]})"
                 )
         return self
-
-    @model_validator(mode="after")
-    def _alarms_watch_what_exists(self) -> SiteConfig:
-        for name, spec in self.alarms.items():
-            problem = _unknown_target(self, spec)
-            if problem:
-                raise ValueError(f"alarms.{name}: {problem}")
-        return self
-
-    @model_validator(mode="after")
-    def _control_names_what_exists(self) -> SiteConfig:
-        names = alarm_names(self)
-        for where, cond_trees, actions, named in _control_parts(self):
-            outputs = list(named)
-            for tree in cond_trees:
-                channels, alarms, nodes, outs = referenced(tree)
-                for ref in channels:
-                    problem = _unknown_target(self, _Ref(channel=ref))
-                    if problem:
-                        raise ValueError(f"{where}: {problem}")
-                for alarm in alarms:
-                    if alarm not in names:
-                        raise ValueError(f"{where}: no alarm named {alarm!r}")
-                for node in nodes:
-                    if node not in self.nodes:
-                        raise ValueError(f"{where}: no node {node!r}")
-                outputs += outs
-            for action in actions:
-                target = getattr(action, "set", None) or getattr(action, "pulse", None)
-                if target:
-                    outputs.append(target)
-            for ref in outputs:
-                node, output = ref.split("/")
-                if node not in self.nodes:
-                    raise ValueError(f"{where}: no node {node!r} (in {ref!r})")
-                if output not in getattr(self.nodes[node], "outputs", {}):
-                    raise ValueError(f"{where}: node {node!r} has no output {output!r}")
-        return self
-
-    def watched_partition_streams(self) -> frozenset[str]:
-        """The partitions' streams (``node/stream``) whose channels a channel alarm, a rule or
-        an interlock watches: they run on the main hub, which follows those streams across
-        the mesh for as long as it runs (`fleetdaq.hub.partitions.live`)."""
-        if not self.hub.partitions:
-            return frozenset()
-        channels = [getattr(spec, "channel", None) for spec in self.alarms.values()]
-        for _, trees, _, _ in _control_parts(self):
-            channels += [ch for tree in trees for ch in referenced(tree)[0]]
-        return frozenset(
-            "/".join(ch.split("/")[:2])
-            for ch in channels
-            if ch and self.partition_of(ch.split("/")[0]) is not None
-        )
 
     def endpoints_for(self, node: str) -> list[str]:
         """The router a node connects to: its own `connect`, else its hub's `listen`."""
@@ -200,55 +162,11 @@ class SiteConfig(Strict):
 
 
 def demo_config_path() -> Path:
-    """The embedded default site (shipped in the package as `edge/config/demo.yaml`)."""
+    """The embedded default site (shipped in the package as
+    `fleetdaq/contract/config/demo.yaml`; `config/demo.yaml` links to it)."""
     return Path(str(files("fleetdaq.contract.config").joinpath("demo.yaml")))
 
 
 def effective_yaml(cfg: SiteConfig) -> str:
     """The validated config with every default filled in: what the recorder attaches to files."""
     return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)
-
-
-def _unknown_target(site: SiteConfig, spec: Any) -> str | None:
-    """What an alarm names that the site does not have (None: all there)."""
-    target = getattr(spec, "channel", None) or getattr(spec, "stream", None)
-    node = getattr(spec, "node", None)
-    if target is not None:
-        parts = target.split("/")
-        node = parts[0]
-    if node is None or node == "hub":  # the main hub's own machine
-        return None
-    if target is None and node.startswith("hub/"):  # a partition hub's machine
-        name = node.removeprefix("hub/")
-        named = ", ".join(site.hub.partitions) or "none"
-        return None if name in site.hub.partitions else f"no partition hub {name!r} ({named})"
-    if node not in site.nodes:
-        return f"no node {node!r} (nodes: {', '.join(site.nodes)})"
-    if target is None:
-        return None
-    streams = site.nodes[node].streams
-    if parts[1] not in streams:
-        return f"node {node!r} has no stream {parts[1]!r} (streams: {', '.join(streams)})"
-    if len(parts) == 3 and parts[2] not in [c.name for c in streams[parts[1]].channels]:
-        return f"stream {node}/{parts[1]} has no channel {parts[2]!r}"
-    return None
-
-
-class _Ref:
-    """A reference to a channel, shaped like a channel alarm for `_unknown_target`."""
-
-    def __init__(self, channel: str) -> None:
-        self.channel = channel
-        self.stream = None
-        self.node = None
-
-
-def _control_parts(site: SiteConfig) -> list[tuple[str, list[Any], list[Any], list[str]]]:
-    """(where, condition trees, actions, output references) of every rule and interlock."""
-    out: list[tuple[str, list[Any], list[Any], list[str]]] = []
-    for name, rule in site.rules.items():
-        trees = [rule.when] + ([rule.precondition] if rule.precondition is not None else [])
-        out.append((f"rules.{name}", trees, [*rule.do, *rule.on_clear], []))
-    for name, lock in site.hub.interlocks.items():
-        out.append((f"hub.interlocks.{name}", [lock.when], [], list(lock.outputs)))
-    return out

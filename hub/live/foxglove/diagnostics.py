@@ -25,8 +25,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Final
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.messages import HostMetrics, NodeHealth
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.foxglove.messages import HEADER, KEY_VALUES, iso, stamp
 from fleetdaq.hub.read_model import HubView, NodeView, StreamView
 

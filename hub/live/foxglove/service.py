@@ -30,11 +30,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.messages import Event
 from fleetdaq.contract.wire import batch_values, plausible_time
 from fleetdaq.hub.bus import EventBus, worth_telling
 from fleetdaq.hub.config.dashboard import split_listen, url_host
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.errors import HubError
 from fleetdaq.hub.live import server_tls
 from fleetdaq.hub.live.foxglove import diagnostics

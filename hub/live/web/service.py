@@ -21,8 +21,8 @@ from pathlib import Path
 
 from aiohttp import web
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.hub.config.dashboard import split_listen, url_host
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.errors import HubError
 from fleetdaq.hub.live import server_tls
 from fleetdaq.hub.live.web.api import MAX_BODY, Api, middlewares

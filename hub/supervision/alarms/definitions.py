@@ -6,15 +6,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from fleetdaq.contract.config.site import SiteConfig
-from fleetdaq.hub.config.alarms import (
-    ChannelAlarm,
-    HubAlarm,
-    NodeAlarm,
-    Severity,
-    StreamAlarm,
-    UniversalRule,
-)
+from fleetdaq.contract.config.universal_alarms import Severity, UniversalRule
+from fleetdaq.hub.config.alarms import ChannelAlarm, HubAlarm, NodeAlarm, StreamAlarm
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.runtime.certificate_dates import HUB_AGAIN, ROTATE, node_again, partition_again
 
 

@@ -23,12 +23,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.keys import HUB
 from fleetdaq.contract.messages import ALARM_STATE_TYPE
 from fleetdaq.contract.requester_text import text_problem
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.read_model import AlarmView, HubView, NodeView, ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.recorder import Recorder
