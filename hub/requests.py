@@ -11,14 +11,16 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
+import zenoh
+
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.requester_text import TextRefused, checked_text, text_problem
-from fleetdaq.hub.read_model import to_jsonable
+from fleetdaq.hub.read_model import JsonObject, to_jsonable
 from fleetdaq.hub.routing.router import Router
 from fleetdaq.runtime.threads import name_os_thread
 
@@ -50,7 +52,7 @@ def json_object(raw: bytes, max_bytes: int, empty: bytes = b"") -> dict[str, Any
     return obj
 
 
-def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
+def parse_object(raw: bytes, allowed: Iterable[str]) -> JsonObject:
     """The request as a dict: at most 64 KiB, a JSON object, only `allowed` keys."""
     try:
         req = json_object(raw, MAX_REQUEST_BYTES, empty=b"{}")
@@ -62,7 +64,9 @@ def parse_object(raw: bytes, allowed: Iterable[str]) -> dict[str, Any]:
     return req
 
 
-def text(req: dict[str, Any], key: str, limit: int = MAX_NOTE_CHARS, default: str = "") -> str:
+def text(
+    req: Mapping[str, object], key: str, limit: int = MAX_NOTE_CHARS, default: str = ""
+) -> str:
     """The request's `key` as requester text (`fleetdaq.contract.requester_text`: one line, no lone
     surrogate or control character, at most `limit` characters), `default` when empty."""
     try:
@@ -86,7 +90,7 @@ class Caller:
         return self.role == "control"
 
 
-Handler = Callable[[bytes, "Caller | None"], dict[str, Any]]
+Handler = Callable[[bytes, "Caller | None"], Mapping[str, object]]
 
 
 class OperatorQueryable:
@@ -120,7 +124,7 @@ class OperatorQueryable:
         self.operators = dict(security.operators) if security is not None else {}
         self.name = name
         self.workers = workers
-        self._queryables: list[Any] = []
+        self._queryables: list[zenoh.Queryable[None]] = []
         self._pool: ThreadPoolExecutor | None = None
 
     def start(self) -> None:
@@ -136,7 +140,7 @@ class OperatorQueryable:
 
     def stop(self) -> None:
         for q in self._queryables:
-            q.undeclare()
+            q.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it untyped
         self._queryables = []
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
@@ -159,7 +163,7 @@ class OperatorQueryable:
             return f"operator {name!r} is not in security.operators"
         return Caller(name, role or "control")
 
-    def _on_query(self, query: Any) -> None:
+    def _on_query(self, query: zenoh.Query) -> None:
         payload = query.payload
         raw = payload.to_bytes() if payload is not None else b""
         key = str(query.key_expr)
@@ -188,7 +192,7 @@ class OperatorQueryable:
             pool.submit(answer)
 
 
-def as_caller(req: dict[str, Any], caller: Caller | None, action: str, read_only: tuple[str, ...]
+def as_caller(req: JsonObject, caller: Caller | None, action: object, read_only: tuple[str, ...]
               ) -> str | None:  # fmt: skip
     """Put the caller's name as the request's user; a reason when the caller may not `action`."""
     if caller is None:
@@ -218,7 +222,7 @@ class RequestService:
             router, key, self.handle, security, self.name, workers, hubs_only
         )
 
-    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
+    def handle(self, raw: bytes, caller: Caller | None = None) -> Mapping[str, object]:
         raise NotImplementedError
 
     def start(self) -> None:

@@ -38,7 +38,7 @@ from fleetdaq.contract.messages import (
     OutputReply,
 )
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.read_model import HubView, ReadModel, to_jsonable
+from fleetdaq.hub.read_model import COMMANDS, HubView, ReadModel, to_jsonable
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import commands_topic
 from fleetdaq.hub.requests import Caller, OperatorQueryable, as_caller, parse_object, text
@@ -256,8 +256,7 @@ class CommandService:
             refusal=reply.refusal,
             replay=reply.replay,
         )
-        self.model.put(
-            "commands",
+        self.model.put(COMMANDS,
             {"sent": self.sent, "applied": self.applied, "refused": self.refused,
              "timeouts": self.timeouts, "replayed": self.replayed},
         )  # fmt: skip

@@ -47,7 +47,14 @@ from fleetdaq.hub.config.control import (
     SetAction,
 )
 from fleetdaq.hub.control.commands import CommandService
-from fleetdaq.hub.read_model import HubView, ReadModel
+from fleetdaq.hub.read_model import (
+    RULES,
+    HubView,
+    InterlockDict,
+    ReadModel,
+    RuleDict,
+    RulesDict,
+)
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.requests import Caller, OperatorQueryable
 from fleetdaq.hub.routing.router import Router
@@ -422,9 +429,9 @@ class RuleEngine:
 
     # --- what others see ----------------------------------------------------------------------
 
-    def states(self) -> dict[str, Any]:
+    def states(self) -> RulesDict:
         with self.lock:
-            rules = [
+            rules: list[RuleDict] = [
                 {
                     "name": r.name,
                     "state": r.state,
@@ -441,7 +448,7 @@ class RuleEngine:
                 }
                 for r in self.rules
             ]
-            interlocks = [
+            interlocks: list[InterlockDict] = [
                 {
                     "name": i.name,
                     "active": i.active,
@@ -455,8 +462,8 @@ class RuleEngine:
         return {"rules": rules, "interlocks": interlocks}
 
     def _publish(self) -> None:
-        self.model.put("rules", self.states())
+        self.model.put(RULES, self.states())
 
-    def _answer(self, raw: bytes, caller: Caller | None) -> dict[str, Any]:
+    def _answer(self, raw: bytes, caller: Caller | None) -> RulesDict:
         """``hub/rules``: every rule's and interlock's state (read only: any operator)."""
         return self.states()

@@ -23,7 +23,7 @@ from typing import Any
 from fleetdaq.contract.messages import Event, NodeHealth
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.nodes.watch import NodeWatch
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import FLEET, FleetDict, NodeTimeDict, ReadModel
 from fleetdaq.ptp.status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
 
 Emit = Callable[..., None]
@@ -58,7 +58,7 @@ class NodeTime:
             as_of_ns=int(d["as_of_ns"]),
         )
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> NodeTimeDict:
         return {
             "node": self.node,
             "state": self.state.value,
@@ -123,7 +123,7 @@ class FleetView:
             return 1
         return 0
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FleetDict:
         return {
             "nodes": [n.to_dict() for n in self.nodes],
             "grandmasters": list(self.grandmasters),
@@ -312,7 +312,7 @@ class FleetTimeService:
     name = "fleet-time"
 
     def __init__(self, bus: EventBus, model: ReadModel, nodes: NodeWatch) -> None:
-        self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put("fleet", v.to_dict()))
+        self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put(FLEET, v.to_dict()))
         nodes.health_listeners.append(self.fleet.update)
         nodes.alive_listeners.append(self.fleet.on_alive)
         self._sub = bus.subscribe(self.name, self.fleet.on_event)

@@ -29,7 +29,7 @@ from fleetdaq.contract.wire import decode_event_mark, plausible_time
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.nodes.event_delivery import Verdict
 from fleetdaq.hub.nodes.refused import RefusedKeys
-from fleetdaq.hub.read_model import NodeView, ReadModel
+from fleetdaq.hub.read_model import MALFORMED, NODES, NodeView, ReadModel
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import health_topic
 from fleetdaq.hub.routing.router import Router
@@ -160,7 +160,7 @@ class NodeWatch:
             n = self._malformed.get(node, 0) + 1
             self._malformed[node] = n
             malformed = tuple(sorted(self._malformed.items()))
-        self.model.put("malformed", malformed)
+        self.model.put(MALFORMED, malformed)
         self.bus.emit_counted(
             n,
             logging.WARNING,
@@ -277,4 +277,4 @@ class NodeWatch:
                 )
                 for n in sorted(self._alive)
             )
-        self.model.put("nodes", views)
+        self.model.put(NODES, views)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
 
 import zenoh
 
@@ -45,11 +44,11 @@ class Router:
         self.connect = connect or []
         self.partition = partition
         self.refused = refused
-        self._session: Any = None
+        self._session: zenoh.Session | None = None
         self._tap: RouterLogTap | None = None
 
     @property
-    def session(self) -> Any:
+    def session(self) -> zenoh.Session:
         if self._session is None:
             raise RouterError("the router is not running")
         return self._session
@@ -93,7 +92,7 @@ class Router:
     def stop(self) -> None:
         session, self._session = self._session, None
         if session is not None:
-            session.close()
+            session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it untyped
         self._untap()
 
     def failure(self) -> str | None:

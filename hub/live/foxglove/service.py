@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
@@ -365,12 +365,12 @@ class _Listener:
         log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
 
 
-def _channel(context: Context, topic: str, schema: dict[str, Any]) -> Channel:
+def _channel(context: Context, topic: str, schema: Mapping[str, object]) -> Channel:
     from foxglove import Channel, Schema
 
     return Channel(
         topic,
-        schema=Schema(name=schema["title"], encoding="jsonschema", data=dumps(schema)),
+        schema=Schema(name=str(schema["title"]), encoding="jsonschema", data=dumps(schema)),
         message_encoding="json",
         context=context,
     )

@@ -6,25 +6,25 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.live.plots import PlotFollower
-from fleetdaq.hub.read_model import HubView
+from fleetdaq.hub.live.plots import PlotFollower, StreamInfo
+from fleetdaq.hub.read_model import HubView, JsonObject
 
 
 class RequestHandler(Protocol):
-    def handle(self, raw: bytes) -> dict[str, Any]:
+    def handle(self, raw: bytes) -> JsonObject:
         """A JSON request -> its JSON-ready answer (``ok``, ``error``, ...). May block."""
         ...
 
 
 class Outputs(RequestHandler, Protocol):
-    def outputs(self) -> dict[str, Any]:
+    def outputs(self) -> JsonObject:
         """Every output of the site: ``node/output`` -> its config."""
         ...
 
-    def listing(self) -> list[dict[str, Any]]:
+    def listing(self) -> list[JsonObject]:
         """Every output: its config, its node's last word on it, any hub interlock."""
         ...
 
@@ -37,13 +37,13 @@ class Plots(Protocol):
         width: int,
         span_s: float,
         end_ns: int | None = None,
-    ) -> dict[str, Any]: ...
+    ) -> JsonObject: ...
 
     def follow(
         self, stream: str, channels: list[str] | None, width: int, span_s: float
     ) -> PlotFollower: ...
 
-    def streams(self) -> dict[str, dict[str, Any]]: ...
+    def streams(self) -> dict[str, StreamInfo]: ...
 
     def on_write(self, callback: Callable[[], None] | None) -> None: ...
 

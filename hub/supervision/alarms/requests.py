@@ -148,8 +148,8 @@ class AlarmRequests(RequestService):
                     out.append(n)
         return out
 
-    def _alarms(self) -> list[Any]:
+    def _alarms(self) -> object:
+        """Every alarm's view, JSON-ready."""
         with self.supervisor.lock:
             views = [a.view() for a in self.supervisor.alarms.values()]
-        out: list[Any] = to_jsonable(views)
-        return out
+        return to_jsonable(views)
