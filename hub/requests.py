@@ -11,10 +11,12 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
+from enum import StrEnum
+from typing import Any, Final
 
 import zenoh
 
@@ -198,9 +200,141 @@ def as_caller(req: JsonObject, caller: Caller | None, action: object, read_only:
     if caller is None:
         return None
     req["user"] = caller.name
+    return refusal(caller, action, read_only)
+
+
+def refusal(caller: Caller, action: object, read_only: Iterable[object]) -> str | None:
+    """Why `caller` may not `action` (None: it may): only the control role acts."""
     if action not in read_only and not caller.may_act:
         return f"operator {caller.name} has the view role: {action} needs control"
     return None
+
+
+# --- the services' actions ---------------------------------------------------------------------
+
+
+class AlarmAction(StrEnum):
+    """What an operator asks of the alarms (``hub/alarms``,
+    `fleetdaq.hub.supervision.alarms.requests`)."""
+
+    LIST = "list"
+    ACK = "ack"
+    SHELVE = "shelve"
+    UNSHELVE = "unshelve"
+    DISABLE = "disable"
+    ENABLE = "enable"
+
+
+class RecorderAction(StrEnum):
+    """What an operator asks of the recorder (``hub/recorder``,
+    `fleetdaq.hub.recording.requests`)."""
+
+    STATUS = "status"
+    START = "start"
+    STOP = "stop"
+    SPLIT = "split"
+    SNAPSHOT = "snapshot"
+
+
+# --- the outputs' requests ----------------------------------------------------------------------
+
+
+class ControlAction(StrEnum):
+    """What an operator asks of the outputs (``hub/out``): the list, or one of the commands an
+    `OutputCommand` carries (`fleetdaq.contract.messages.ACTIONS`, the same strings)."""
+
+    LIST = "list"
+    SET = "set"
+    PULSE = "pulse"
+    ARM = "arm"
+    DISARM = "disarm"
+    READ = "read"
+
+
+VALUED: Final = frozenset({ControlAction.SET, ControlAction.PULSE})
+"""The actions that carry a value (and that a hub interlock holds back)."""
+CONTROL_FIELDS: Final = (
+    "action", "output", "value", "pulse_s", "reason", "user", "host", "command_id",
+)  # fmt: skip
+MAX_PULSE_S = 3600.0
+_CONTROL_ACTIONS: Final = frozenset(a.value for a in ControlAction)
+
+
+@dataclass(frozen=True, slots=True)
+class ControlRequest:
+    """An operator's request to the outputs, parsed once and checked in full
+    (`parse_control_request`): the command line's (a Zenoh query) and the dashboard's alike."""
+
+    action: ControlAction
+    output: str = ""
+    """``NODE/OUTPUT`` ("" for `ControlAction.LIST`)."""
+    value: float = math.nan
+    pulse_s: float = 0.0
+    reason: str = ""
+    user: str = "unknown"
+    host: str = "unknown"
+    command_id: str | None = None
+    """The requester's own id for the command (None: the hub makes one)."""
+
+    @property
+    def node(self) -> str:
+        return self.output.split("/", 1)[0]
+
+    @property
+    def output_name(self) -> str:
+        return self.output.split("/", 1)[1]
+
+    def by(self, user: str) -> ControlRequest:
+        """This request as `user`'s (the name the router vouches for)."""
+        return replace(self, user=user)
+
+
+def parse_control_request(req: Mapping[str, object]) -> ControlRequest:
+    """The JSON object `req` as a `ControlRequest`; BadRequest says what is wrong. Every text
+    is checked before anything is sent, so that what is done can be recorded."""
+    unknown = set(req) - set(CONTROL_FIELDS)
+    if unknown:
+        raise BadRequest(f"unknown field(s): {', '.join(sorted(map(str, unknown)))}")
+    asked = req.get("action", ControlAction.LIST)
+    if not isinstance(asked, str) or asked not in _CONTROL_ACTIONS:
+        raise BadRequest(f"unknown action {asked!r} (one of {', '.join(ControlAction)})")
+    action = ControlAction(asked)
+    if action is ControlAction.LIST:
+        return ControlRequest(action)
+    output = text(req, "output", 200)
+    if output.count("/") != 1:
+        raise BadRequest("output must be NODE/OUTPUT")
+    numbers: dict[str, float] = {}
+    for key, default in (("value", math.nan), ("pulse_s", 0.0)):
+        v = req.get(key, default)
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, int | float)
+            or not math.isfinite(v if key != "value" or action in VALUED else 0.0)
+        ):
+            raise BadRequest(f"{key} must be a finite number")
+        numbers[key] = float(v)
+    value, pulse_s = numbers["value"], numbers["pulse_s"]
+    if action in VALUED and math.isnan(value):
+        raise BadRequest(f"{action} needs a value")
+    if action is ControlAction.PULSE and not 0 < pulse_s <= MAX_PULSE_S:
+        raise BadRequest("a pulse lasts more than 0 s and at most 3600 s")
+    return ControlRequest(
+        action,
+        output,
+        value,
+        pulse_s,
+        reason=text(req, "reason", MAX_NOTE_CHARS),
+        user=text(req, "user", MAX_USER_CHARS, "unknown"),
+        host=text(req, "host", MAX_HOST_CHARS, "unknown"),
+        command_id=text(req, "command_id", 128) or None,
+    )
+
+
+def read_control_request(raw: bytes) -> ControlRequest:
+    """A request on ``hub/out`` (JSON bytes) as a `ControlRequest` (`parse_object`, then
+    `parse_control_request`)."""
+    return parse_control_request(parse_object(raw, CONTROL_FIELDS))
 
 
 class RequestService:
