@@ -23,7 +23,7 @@ import zenoh
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.requester_text import TextRefused, checked_text, text_problem
 from fleetdaq.hub.read_model import JsonObject, to_jsonable
-from fleetdaq.hub.routing.router import Router
+from fleetdaq.hub.routing.router import Router, undeclare
 from fleetdaq.runtime.threads import name_os_thread
 
 log = logging.getLogger("fleetdaq.hub")
@@ -142,7 +142,7 @@ class OperatorQueryable:
 
     def stop(self) -> None:
         for q in self._queryables:
-            q.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it untyped
+            undeclare(q)
         self._queryables = []
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from enum import StrEnum
 
 import numpy as np
 
@@ -32,10 +32,12 @@ from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.control import (
+    Action,
     AlarmCondition,
     AllCondition,
     AnyCondition,
     ChannelCondition,
+    Condition,
     EventAction,
     InterlockConfig,
     NodeCondition,
@@ -56,7 +58,7 @@ from fleetdaq.hub.read_model import (
     RulesDict,
 )
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
-from fleetdaq.hub.requests import Caller, OperatorQueryable
+from fleetdaq.hub.requests import Caller, ControlAction, OperatorQueryable
 from fleetdaq.hub.routing.router import Router
 from fleetdaq.hub.supervision.alarms.conditions import SampleCondition
 from fleetdaq.runtime.threads import NamedThread, name_os_thread
@@ -105,12 +107,12 @@ def _state_matches(state: str, wanted: str) -> bool:
 class Tree:
     """A condition tree with its channel leaves; evaluated against the latest read model."""
 
-    def __init__(self, cond: Any, on_delay_ns: int = 0) -> None:
+    def __init__(self, cond: Condition, on_delay_ns: int = 0) -> None:
         self.cond = cond
         self.leaves: dict[int, ChannelLeaf] = {}
         self._build(cond, on_delay_ns if isinstance(cond, ChannelCondition) else 0)
 
-    def _build(self, c: Any, delay: int) -> None:
+    def _build(self, c: Condition, delay: int) -> None:
         if isinstance(c, ChannelCondition):
             self.leaves[id(c)] = ChannelLeaf(c, delay)
         elif isinstance(c, AllCondition):
@@ -125,7 +127,7 @@ class Tree:
     def holds(self, view: HubView) -> bool:
         return self._eval(self.cond, view)
 
-    def _eval(self, c: Any, view: HubView) -> bool:
+    def _eval(self, c: Condition, view: HubView) -> bool:
         if isinstance(c, ChannelCondition):
             return self.leaves[id(c)].holds
         if isinstance(c, AlarmCondition):
@@ -155,6 +157,16 @@ class Tree:
         raise TypeError(f"not a condition: {c!r}")
 
 
+class RulePhase(StrEnum):
+    """Where a rule is: waiting for `when` (idle), `when` holds but not yet for `for_s`, the
+    precondition or the cooldown (pending), fired until `when` clears (active), or off."""
+
+    IDLE = "idle"
+    PENDING = "pending"
+    ACTIVE = "active"
+    DISABLED = "disabled"
+
+
 @dataclass(slots=True)
 class RuleState:
     name: str
@@ -163,9 +175,7 @@ class RuleState:
     precondition: Tree | None
     channel_timed: bool
     """`for_s` counted in acquisition time by the single channel condition itself."""
-    state: str = "idle"
-    """"idle", "pending" (when holds, waiting for for_s / the precondition / the cooldown),
-    "active" (fired; until when clears), "disabled"."""
+    state: RulePhase = RulePhase.IDLE
     since_ns: int = 0
     when_since_ns: int | None = None
     fired: int = 0
@@ -214,7 +224,7 @@ class RuleEngine:
                 Tree(r.when, round(r.for_s * 1e9)),
                 Tree(r.precondition) if r.precondition is not None else None,
                 isinstance(r.when, ChannelCondition),
-                state="idle" if r.enabled else "disabled",
+                state=RulePhase.IDLE if r.enabled else RulePhase.DISABLED,
             )
             for name, r in site.rules.items()
         ]
@@ -320,18 +330,18 @@ class RuleEngine:
                 self._step(r, view, now)
 
     def _step(self, r: RuleState, view: HubView, now: int) -> None:
-        if r.state == "disabled":
+        if r.state is RulePhase.DISABLED:
             return
         when = r.when.holds(view)
         if not when:
             r.when_since_ns = None
-            if r.state == "active":
-                r.state, r.since_ns = "idle", now
+            if r.state is RulePhase.ACTIVE:
+                r.state, r.since_ns = RulePhase.IDLE, now
                 self._fire(r, r.cfg.on_clear, "cleared")
-            elif r.state == "pending":
-                r.state, r.since_ns = "idle", now
+            elif r.state is RulePhase.PENDING:
+                r.state, r.since_ns = RulePhase.IDLE, now
             return
-        if r.state == "active":
+        if r.state is RulePhase.ACTIVE:
             return
         if r.when_since_ns is None:
             r.when_since_ns = now
@@ -339,14 +349,14 @@ class RuleEngine:
         pre = r.precondition is None or r.precondition.holds(view)
         cooled = now - r.last_fired_ns >= round(r.cfg.cooldown_s * 1e9) or not r.fired
         if held and pre and cooled:
-            r.state, r.since_ns = "active", now
+            r.state, r.since_ns = RulePhase.ACTIVE, now
             r.fired += 1
             r.last_fired_ns = now
             self._fire(r, r.cfg.do, "fired")
-        elif r.state == "idle":
-            r.state, r.since_ns = "pending", now
+        elif r.state is RulePhase.IDLE:
+            r.state, r.since_ns = RulePhase.PENDING, now
 
-    def _fire(self, r: RuleState, actions: list[Any], why: str) -> None:
+    def _fire(self, r: RuleState, actions: list[Action], why: str) -> None:
         self.bus.emit(
             logging.INFO,
             "rules",
@@ -358,7 +368,7 @@ class RuleEngine:
         if actions:
             self._pool.submit(self._run_actions, r, actions, why)
 
-    def _run_actions(self, r: RuleState, actions: list[Any], why: str) -> None:
+    def _run_actions(self, r: RuleState, actions: list[Action], why: str) -> None:
         results: list[str] = []
         for action in actions:
             try:
@@ -370,12 +380,12 @@ class RuleEngine:
             r.last_result = "; ".join(results)
             r.results = (r.results + results)[-20:]
 
-    def _act(self, action: Any, who: str, reason: str) -> str:
+    def _act(self, action: Action, who: str, reason: str) -> str:
         if isinstance(action, SetAction | PulseAction):
             target = action.set if isinstance(action, SetAction) else action.pulse
             node, output = target.split("/")
             pulse = action.for_s if isinstance(action, PulseAction) else 0.0
-            kind = "set" if isinstance(action, SetAction) else "pulse"
+            kind = ControlAction.SET if isinstance(action, SetAction) else ControlAction.PULSE
             _, reply = self.commands.send(
                 node, output, kind, action.value, pulse, "rule", who, reason
             )
@@ -414,8 +424,8 @@ class RuleEngine:
                 continue
             # Sent past the interlock itself (it is the interlock that sends it).
             self.commands.send_unblocked(
-                node, output, "set", float(cfg.safe), 0.0, "rule", f"interlock:{lock.name}",
-                f"interlock {lock.name} tripped",
+                node, output, ControlAction.SET, float(cfg.safe), 0.0, "rule",
+                f"interlock:{lock.name}", f"interlock {lock.name} tripped",
             )  # fmt: skip
 
     def blocked(self, node: str, output: str) -> str | None:

@@ -8,7 +8,8 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
+
+import zenoh
 
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.keys import SiteKeys
@@ -59,7 +60,7 @@ class StatusService:
 
 
 def query_status(
-    session: Any, keys: SiteKeys, timeout_s: float = 5.0, key: str | None = None
+    session: zenoh.Session, keys: SiteKeys, timeout_s: float = 5.0, key: str | None = None
 ) -> JsonObject | None:
     """Ask the hub (or at `key`, a partition hub) for its status; None when none answers within
     `timeout_s`."""

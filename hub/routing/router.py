@@ -17,6 +17,15 @@ from fleetdaq.runtime.zenoh_session import router_config
 
 log = logging.getLogger("fleetdaq.hub")
 
+Declared = zenoh.Publisher | zenoh.Subscriber[None] | zenoh.Queryable[None]
+"""What a hub service declares on the router's session, and undeclares when it stops."""
+
+
+def undeclare(entity: Declared) -> None:
+    """Undeclare a publisher, subscriber or queryable (zenoh's stubs leave `undeclare`
+    unannotated, so mypy is told once, here)."""
+    entity.undeclare()  # type: ignore[no-untyped-call]
+
 
 class Router:
     """Opens the router on start (edges connect to its `listen` endpoints); closes it last.
