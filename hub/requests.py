@@ -4,6 +4,13 @@ JSON object, no unknown field, bounded text) and `RequestService`, which declare
 and answers each request on a small pool, never on a Zenoh thread (an answer may block: a
 recorder flushing, an edge being asked). The dashboard calls the same `handle` directly, so
 the command line and the page are the same path with the same checks.
+
+Also the services' actions as StrEnums (`AlarmAction`, `RecorderAction`, `ControlAction`: their
+values are the strings on the wire), and the outputs' request: parsed once, by
+`parse_control_request`, into a frozen `ControlRequest` that the ``hub/out`` queryable
+(`fleetdaq.hub.control.commands.CommandService.handle`) and the dashboard
+(`fleetdaq.hub.live.web.api`) both hand to `CommandService.act`. It lives here, below both wings,
+because the control wing already uses the live view (its layer waits read the live plots).
 """
 
 from __future__ import annotations

@@ -7,9 +7,12 @@ Reading (open to anyone who reaches the address when `open_view`, else after a l
 Acting (a login with the ``control`` role, this session's CSRF token in ``X-CSRF-Token``, an
 Origin that is this page's, a JSON body; a ``view`` login is refused, 403):
 ``POST /api/alarms`` (ack, shelve, unshelve), ``/api/outputs`` (set, pulse, arm, disarm),
-``/api/recorder`` (start, stop, split, snapshot). Each goes to the same ``handle`` the
-command line's request reaches, with ``user`` and ``host`` always replaced by the logged-in
-user and the client's address, so every action's audit names who did it. The handlers block
+``/api/recorder`` (start, stop, split, snapshot). Each goes the command line's way, with
+``user`` and ``host`` always replaced by the logged-in user and the client's address, so every
+action's audit names who did it: alarms and recorder to the same ``handle`` the command line's
+request reaches; outputs parsed by the command line's own parser
+(`fleetdaq.hub.requests.parse_control_request`), the `ControlRequest` handed to
+`CommandService.act`. The handlers block
 (an edge being asked, the journal fsynced): they run on a worker pool, never on the loop.
 
 Bad input is answered 400 with one line saying what is wrong (401 without a login, 403 for a

@@ -180,7 +180,7 @@ class Supervisor:
                 continue  # an alarm the site file no longer defines
             try:
                 s = a.status
-                s.state = State(rec["state"])
+                s.state = State(str(rec["state"]))
                 s.active = bool(rec["active"])
                 s.since_ns = as_int(rec["since_ns"])
                 s.count = as_int(rec["count"])
