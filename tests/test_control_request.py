@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import typing
+from pathlib import Path
 
 import pytest
 
@@ -119,3 +120,23 @@ def test_a_part_put_is_in_the_snapshot_and_the_partitions_streams_follow_the_hub
     assert view.commands == {"sent": 1}
     assert view.time_ns == 7
     assert typing.get_type_hints(HubView)["commands"] == dict[str, int]
+
+
+def test_mypy_refuses_a_value_of_the_wrong_type_for_a_part(tmp_path: Path):
+    from mypy import api
+
+    snippet = tmp_path / "parts.py"
+    snippet.write_text(
+        "from fleetdaq.hub.read_model import COMMANDS, STREAMS, ReadModel\n"
+        "model = ReadModel('s')\n"
+        "model.put(STREAMS, ())\n"
+        "model.put(COMMANDS, {'sent': 1})\n"
+        "model.put(STREAMS, {'sent': 1})\n"
+        "model.put(COMMANDS, 'three')\n"
+    )
+    out, _, code = api.run(
+        ["--strict", "--no-error-summary", "--follow-imports=silent",
+         f"--cache-dir={tmp_path / 'cache'}", str(snippet)]
+    )  # fmt: skip
+    assert code == 1, out
+    assert [line.split(":")[1] for line in out.splitlines()] == ["5", "6"], out
