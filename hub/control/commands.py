@@ -286,7 +286,8 @@ class CommandService:
             refusal=reply.refusal,
             replay=reply.replay,
         )
-        self.model.put(COMMANDS,
+        self.model.put(
+            COMMANDS,
             {"sent": self.sent, "applied": self.applied, "refused": self.refused,
              "timeouts": self.timeouts, "replayed": self.replayed},
         )  # fmt: skip
