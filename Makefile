@@ -16,11 +16,12 @@ demo: $(STAMP)
 	$(VENV)/bin/fleetdaq demo --data data $(ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check edge hub ptp fleetdaq tests bench
-	$(VENV)/bin/ruff format --check edge hub ptp fleetdaq tests bench
+	$(VENV)/bin/ruff check edge hub ptp fleetdaq tests bench examples
+	$(VENV)/bin/ruff format --check edge hub ptp fleetdaq tests bench examples
 
-typecheck: $(STAMP)
+typecheck: $(STAMP) examples
 	$(VENV)/bin/mypy
+	$(VENV)/bin/mypy --strict $(EXAMPLE)/src $(EXAMPLE)/tests
 
 imports: $(STAMP)
 	$(VENV)/bin/lint-imports

@@ -16,7 +16,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 from fleetdaq.contract.messages import Event, make_event
 from fleetdaq.runtime.threads import NamedThread
@@ -48,8 +47,19 @@ def writable(text: str) -> str:
     return text
 
 
-_STOP = object()
-_FLUSH = object()
+@dataclass(frozen=True, slots=True)
+class _Flush:
+    """Set `done` once every event queued before it was handled."""
+
+    done: threading.Event
+
+
+class _Stop:
+    """The subscriber's thread ends here."""
+
+
+_STOP = _Stop()
+_Item = Event | _Flush | _Stop
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,7 +78,7 @@ class Subscription:
         self.bus = bus
         self.name = name
         self.handler = handler
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize)
+        self._queue: queue.Queue[_Item] = queue.Queue(maxsize)
         self._thread = NamedThread(target=self._run, name=f"bus-{name}", daemon=True)
         self.delivered = 0
         self.dropped = 0
@@ -76,7 +86,7 @@ class Subscription:
         self._unreported = 0
         self._last_report = 0.0
 
-    def offer(self, item: Any) -> bool:
+    def offer(self, item: Event) -> bool:
         try:
             self._queue.put_nowait(item)
             return True
@@ -97,7 +107,7 @@ class Subscription:
         deadline = time.monotonic() + timeout
         while True:
             try:
-                self._queue.put((_FLUSH, done), timeout=0.1)
+                self._queue.put(_Flush(done), timeout=0.1)
                 break
             except queue.Full:
                 if time.monotonic() > deadline:
@@ -126,10 +136,10 @@ class Subscription:
     def _run(self) -> None:
         while True:
             item = self._queue.get()
-            if item is _STOP:
+            if isinstance(item, _Stop):
                 return
-            if isinstance(item, tuple) and item and item[0] is _FLUSH:
-                item[1].set()
+            if isinstance(item, _Flush):
+                item.done.set()
                 continue
             try:
                 self.handler(item)

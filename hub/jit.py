@@ -15,11 +15,19 @@ import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Generic, Protocol, TypeVar, cast
 
 from fleetdaq.runtime.threads import NamedThread
 
 T = TypeVar("T")
+F = TypeVar("F", bound=Callable[..., object])
+
+
+class Njit(Protocol):
+    """numba's ``njit`` decorator, configured: a loop in, the same loop compiled out."""
+
+    def __call__(self, loop: F, /) -> F: ...
+
 
 log = logging.getLogger("fleetdaq.jit")
 
@@ -29,7 +37,7 @@ class Compiled(Generic[T]):
     proves right; None until then, or for good when numba is missing or fails (`error` says
     why and `fallback` was logged as a warning)."""
 
-    def __init__(self, name: str, module_file: str, build: Callable[[Any], T], fallback: str):
+    def __init__(self, name: str, module_file: str, build: Callable[[Njit], T], fallback: str):
         self.name = name
         self._here = Path(module_file).resolve().parent
         self._build = build
@@ -70,11 +78,16 @@ class Compiled(Generic[T]):
             log.warning("%s (%s)", self._fallback, self.error)
 
 
-def _njit(here: Path, cache_dir: Path | None) -> Any:
+def _njit(here: Path, cache_dir: Path | None) -> Njit:
     writable = os.access(here, os.W_OK)
     if not writable and "NUMBA_CACHE_DIR" not in os.environ and cache_dir:
         os.environ["NUMBA_CACHE_DIR"] = str(cache_dir / "numba")
     import numba  # the hub extra's
 
     cache = writable or "NUMBA_CACHE_DIR" in os.environ
-    return numba.njit(nogil=True, cache=cache, boundscheck=False)
+    jit = numba.njit(nogil=True, cache=cache, boundscheck=False)
+
+    def compiled(loop: F) -> F:
+        return cast(F, jit(loop))  # numba's dispatcher is called as the loop it compiled
+
+    return compiled

@@ -2,8 +2,11 @@
 time, which the services publish and everyone else reads (the demo's table, the status
 request, and later the dashboard and /metrics) without touching a lock or an internal.
 
-Each service replaces its own part whole (one reference swap); `snapshot()` hands out the current
-parts together."""
+Each service replaces its own part whole (one reference swap) through that part's `Part` key, whose
+type mypy checks against the value (``model.put(STREAMS, views)``); `snapshot()` hands out the
+current parts together. The parts shaped as JSON objects (the notifier's counters, the rules'
+states, the fleet's time) are `TypedDict`s: plain dicts at run time, so their JSON is what it
+was."""
 
 from __future__ import annotations
 
@@ -12,10 +15,17 @@ import enum
 import math
 import threading
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final, Generic, TypedDict, TypeVar
 
 from fleetdaq.contract.messages import Event, NodeHealth
+
+T = TypeVar("T")
+
+JsonObject = dict[str, object]
+"""A JSON object as the hub hands it on (to a reply, a page, a part): its values only passed
+on or narrowed where read."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,6 +115,95 @@ class AlarmView:
     shelved_until_ns: int
 
 
+class NotifierCounters(TypedDict, total=False):
+    """The read model's ``notifier`` part (`fleetdaq.hub.supervision.notify.service`); empty
+    until the notifier publishes."""
+
+    enabled: bool
+    smtp: bool
+    server: str
+    state: str
+    """"off", "idle", "sending" or "failing"."""
+    groups: list[str]
+    received: int
+    ignored: int
+    composed: int
+    digests: int
+    suppressed: int
+    deferred: int
+    held: int
+    queued: int
+    unwritten: int
+    sent: int
+    failed_attempts: int
+    rejected: int
+    rejected_recipients: int
+    dropped: int
+    errors: int
+    oldest_queued_age_s: float
+    next_attempt_in_s: float
+    last_error: str
+    last_subject: str
+    outbox: str
+
+
+class NodeTimeDict(TypedDict):
+    """One node's time in the ``fleet`` part (`fleetdaq.hub.nodes.fleet_time.NodeTime`)."""
+
+    node: str
+    state: str
+    level: str
+    source: str
+    offset_ns: int | None
+    grandmaster_id: str
+    port_state: str | None
+    as_of_ns: int
+
+
+class FleetDict(TypedDict, total=False):
+    """The read model's ``fleet`` part (`fleetdaq.hub.nodes.fleet_time.FleetView.to_dict`);
+    empty until a node's time is known."""
+
+    nodes: list[NodeTimeDict]
+    grandmasters: list[str]
+    same_grandmaster: bool
+    max_abs_offset_ns: int | None
+    locked: int
+    verdict: int
+
+
+class RuleDict(TypedDict):
+    """One rule in the ``rules`` part (`fleetdaq.hub.control.rules.RuleEngine.states`)."""
+
+    name: str
+    state: str
+    since_ns: int
+    fired: int
+    last_fired_ns: int
+    last_result: str
+    description: str
+    when: JsonObject
+    values: dict[str, float]
+
+
+class InterlockDict(TypedDict):
+    """One hub interlock in the ``rules`` part."""
+
+    name: str
+    active: bool
+    since_ns: int
+    trips: int
+    outputs: list[str]
+    force_safe: bool
+
+
+class RulesDict(TypedDict, total=False):
+    """The read model's ``rules`` part; empty until the rules engine publishes."""
+
+    rules: list[RuleDict]
+    interlocks: list[InterlockDict]
+
+
 @dataclass(frozen=True, slots=True)
 class HubView:
     site: str
@@ -116,19 +215,19 @@ class HubView:
     alarms: tuple[AlarmView, ...] = ()
     alarm_totals: dict[str, int] = field(default_factory=dict)
     """Transitions since the hub started: raised, cleared, acked, shelved, disabled."""
-    notifier: dict[str, Any] = field(default_factory=dict)
+    notifier: NotifierCounters = field(default_factory=NotifierCounters)
     """The notifier's counters (queued, sent, oldest_queued_age_s, ...)."""
-    certificates: dict[str, Any] = field(default_factory=dict)
+    certificates: dict[str, JsonObject] = field(default_factory=dict)
     """With security.tls: this hub's certificate and the site CA's, each ``{path, cn,
     not_after_ns}`` (`fleetdaq.hub.supervision.certificates`)."""
-    rules: dict[str, Any] = field(default_factory=dict)
+    rules: RulesDict = field(default_factory=RulesDict)
     """Every rule's and hub interlock's state (`fleetdaq.hub.control.rules.RuleEngine.states`)."""
-    snapshots: dict[str, Any] = field(default_factory=dict)
+    snapshots: JsonObject = field(default_factory=dict)
     """The snapshot buffer (`fleetdaq.hub.recording.snapshots.SnapshotBuffer.counters`); empty when
     switched off."""
     commands: dict[str, int] = field(default_factory=dict)
     """Commands sent, applied, refused, timed out."""
-    fleet: dict[str, Any] = field(default_factory=dict)
+    fleet: FleetDict = field(default_factory=FleetDict)
     """The fleet's time (`fleetdaq.hub.nodes.fleet_time.FleetView.to_dict`)."""
     recent_events: tuple[Event, ...] = ()
     event_counts: dict[str, int] = field(default_factory=dict)
@@ -143,9 +242,10 @@ class HubView:
     refused_tls_total: int = 0
     malformed: tuple[tuple[str, int], ...] = ()
     """Health and event payloads refused per node (batches: per stream, in `streams`)."""
-    bus: tuple[dict[str, Any], ...] = ()
+    bus: tuple[JsonObject, ...] = ()
+    """Each event bus subscriber's counters (name, delivered, dropped, errors, queued)."""
     failures: tuple[tuple[str, str], ...] = ()
-    partitions: dict[str, Any] = field(default_factory=dict)
+    partitions: dict[str, JsonObject] = field(default_factory=dict)
     """The main hub's view of each partition hub (`fleetdaq.hub.partitions.watch.PartitionWatch`):
     alive, when its last report came, its recorder."""
     partition_hubs: tuple[NodeView, ...] = ()
@@ -159,16 +259,52 @@ class HubView:
         return next((s for s in self.streams if (s.node, s.stream) == (node, stream)), None)
 
 
+@dataclass(frozen=True, slots=True)
+class Part(Generic[T]):
+    """The key of one part of the read model: its name (a `HubView` field, or
+    ``partition_streams``) and, for mypy, the type of its value."""
+
+    name: str
+
+
+NODES: Final[Part[tuple[NodeView, ...]]] = Part("nodes")
+STREAMS: Final[Part[tuple[StreamView, ...]]] = Part("streams")
+PARTITION_STREAMS: Final[Part[tuple[StreamView, ...]]] = Part("partition_streams")
+"""The partition hubs' streams, as their reports say: shown after this hub's own `STREAMS`."""
+RECORDER: Final[Part[RecorderView]] = Part("recorder")
+HUB_HEALTH: Final[Part[NodeHealth | None]] = Part("hub_health")
+ALARMS: Final[Part[tuple[AlarmView, ...]]] = Part("alarms")
+ALARM_TOTALS: Final[Part[dict[str, int]]] = Part("alarm_totals")
+NOTIFIER: Final[Part[NotifierCounters]] = Part("notifier")
+CERTIFICATES: Final[Part[dict[str, JsonObject]]] = Part("certificates")
+RULES: Final[Part[RulesDict]] = Part("rules")
+SNAPSHOTS: Final[Part[JsonObject]] = Part("snapshots")
+COMMANDS: Final[Part[dict[str, int]]] = Part("commands")
+FLEET: Final[Part[FleetDict]] = Part("fleet")
+RECENT_EVENTS: Final[Part[tuple[Event, ...]]] = Part("recent_events")
+EVENT_COUNTS: Final[Part[dict[str, int]]] = Part("event_counts")
+REFUSED_KEYS: Final[Part[tuple[tuple[str, int], ...]]] = Part("refused_keys")
+REFUSED_TOTAL: Final[Part[int]] = Part("refused_total")
+REFUSED_ACL: Final[Part[tuple[tuple[str, str, int], ...]]] = Part("refused_acl")
+REFUSED_ACL_TOTAL: Final[Part[int]] = Part("refused_acl_total")
+REFUSED_TLS: Final[Part[tuple[tuple[str, int], ...]]] = Part("refused_tls")
+REFUSED_TLS_TOTAL: Final[Part[int]] = Part("refused_tls_total")
+MALFORMED: Final[Part[tuple[tuple[str, int], ...]]] = Part("malformed")
+PARTITIONS: Final[Part[dict[str, JsonObject]]] = Part("partitions")
+PARTITION_HUBS: Final[Part[tuple[NodeView, ...]]] = Part("partition_hubs")
+
+
 class ReadModel:
     def __init__(self, site: str) -> None:
         self.site = site
+        # Each value was checked against its Part's type where it was put.
         self._parts: dict[str, Any] = {}
         self._lock = threading.Lock()
 
-    def put(self, part: str, value: Any) -> None:
-        """Replace one part (``nodes``, ``streams``, ``recorder``, ``fleet``, ...) whole."""
+    def put(self, part: Part[T], value: T) -> None:
+        """Replace one part (`NODES`, `STREAMS`, `RECORDER`, `FLEET`, ...) whole."""
         with self._lock:
-            self._parts[part] = value
+            self._parts[part.name] = value
 
     def snapshot(self, time_ns: int = 0) -> HubView:
         with self._lock:
@@ -179,7 +315,24 @@ class ReadModel:
         return HubView(site=self.site, time_ns=time_ns, **parts)
 
 
-def to_jsonable(value: Any) -> Any:
+def number(obj: Mapping[str, object], key: str) -> float | None:
+    """``obj[key]`` when it is a number (an int or a float, not a bool), else None: a part's
+    JSON-shaped value narrowed where it is read."""
+    value = obj.get(key)
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return value
+    return None
+
+
+def member(obj: Mapping[str, object], key: str) -> JsonObject:
+    """``obj[key]`` when it is a JSON object (a dict with text keys), else an empty one."""
+    value = obj.get(key)
+    if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        return value
+    return {}
+
+
+def to_jsonable(value: object) -> object:
     """Dataclasses, enums, tuples and non-finite floats into JSON-ready values."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
@@ -196,12 +349,23 @@ def to_jsonable(value: Any) -> Any:
     return value
 
 
+def to_json_object(value: object) -> JsonObject:
+    """`to_jsonable` of a dataclass or a dict: a JSON object (TypeError for anything else)."""
+    out = to_jsonable(value)
+    if not isinstance(out, dict):
+        raise TypeError(f"{type(value).__name__} is not a JSON object")
+    return out
+
+
 MAX_JSON_TEXT = 4096
 MAX_JSON_ITEMS = 100_000
 _INT_LIMIT = 1 << 63
 
 
-def from_jsonable(cls: type[Any], obj: Any) -> Any:
+V = TypeVar("V")
+
+
+def from_jsonable(cls: type[V], obj: object) -> V:
     """The view `cls` (a dataclass of str, bool, int, float, ``X | None`` and ``tuple[str,
     ...]`` fields) from a JSON object another hub sent, checked in full: only its fields, each
     of its type (ints within 64 bits, text and lists bounded; a float may be null, as
@@ -220,7 +384,7 @@ def from_jsonable(cls: type[Any], obj: Any) -> Any:
         raise ValueError(f"{cls.__name__}: {err}") from None
 
 
-def _checked(value: Any, hint: Any, where: str) -> Any:
+def _checked(value: object, hint: object, where: str) -> object:
     args = typing.get_args(hint)
     if type(None) in args:  # X | None
         if value is None:
@@ -233,17 +397,18 @@ def _checked(value: Any, hint: Any, where: str) -> Any:
     if hint is float:
         if value is None:
             return math.nan
-        if type(value) in (int, float) and abs(value) < _INT_LIMIT:
+        if isinstance(value, int | float) and type(value) is not bool and abs(value) < _INT_LIMIT:
             return float(value)
     if hint is str and isinstance(value, str) and len(value) <= MAX_JSON_TEXT:
         return value
     listed = typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...)
     if listed and isinstance(value, list) and len(value) <= MAX_JSON_ITEMS:
         return tuple(_checked(v, str, f"{where}[]") for v in value)
-    wanted = {
+    kinds: dict[object, str] = {
         bool: "true or false",
         int: "an integer within 64 bits",
         float: "a number within 64 bits",
         str: f"text of at most {MAX_JSON_TEXT} characters",
-    }.get(hint, f"a list of at most {MAX_JSON_ITEMS} texts")
+    }
+    wanted = kinds.get(hint, f"a list of at most {MAX_JSON_ITEMS} texts")
     raise ValueError(f"{where}: {type(value).__name__} is not {wanted}")

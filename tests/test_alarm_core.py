@@ -401,7 +401,8 @@ def test_each_nodes_certificate_is_watched_from_its_health():
     A stale health still counts (a node whose pair expired cannot connect to say so); none
     without TLS, nothing to judge from a node that cannot tell (0) or was never heard."""
     from fleetdaq.hub.read_model import HubView, NodeView
-    from fleetdaq.hub.supervision.alarms.supervisor import _machine, _node_check
+    from fleetdaq.hub.supervision.alarms.machines import machine as _machine
+    from fleetdaq.hub.supervision.alarms.machines import node_check as _node_check
 
     plain = {d.name for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
     assert not {n for n in plain if n.startswith("certificate_expiring")}
@@ -451,7 +452,7 @@ def test_each_nodes_certificate_is_watched_from_its_health():
 def test_each_partition_hub_is_watched_like_the_main_hub_down_disk_and_recorder():
     """`node_down/hub/P`, `disk_nearly_full/hub/P`, `recorder/hub/P`, from what the main hub
     knows of the partition (its liveliness and its last report)."""
-    from fleetdaq.hub.supervision.alarms.supervisor import _partition_check
+    from fleetdaq.hub.supervision.alarms.machines import partition_check as _partition_check
 
     defs = {d.name: d for d in build_definitions(parse_config(PARTITIONED, "p.yaml"))}
     down, disk, rec = (defs[f"{k}/hub/bay2"] for k in ("node_down", "disk_nearly_full", "recorder"))
@@ -531,7 +532,8 @@ def test_a_site_may_alarm_on_a_hubs_own_machine_and_a_partition_hubs():
     """A hub on a buoy overheats like any Pi: `node: hub` (the main hub's machine) and
     `node: hub/<partition>` watch CPU, memory, temperature and the recording disk."""
     from fleetdaq.hub.read_model import HubView, NodeView
-    from fleetdaq.hub.supervision.alarms.supervisor import _machine, _node_check
+    from fleetdaq.hub.supervision.alarms.machines import machine as _machine
+    from fleetdaq.hub.supervision.alarms.machines import node_check as _node_check
 
     site = parse_config(HUB_MACHINES, "p.yaml")
     defs = {d.name: d for d in build_definitions(site)}

@@ -112,8 +112,7 @@ def ptp_fleet(config: str, as_json: bool, connect: tuple[str, ...], timeout: flo
     alive = {n["node"] for n in status.get("nodes", []) if n.get("alive")}
     silent = sorted(alive - {n.node for n in view.nodes})
     if as_json:
-        out = view.to_dict()
-        out["alive_without_clock"] = silent
+        out = {**view.to_dict(), "alive_without_clock": silent}
         click.echo(json.dumps(out, indent=2))
     else:
         click.echo(view.format_table() if view.nodes else "no node reported its clock")

@@ -24,24 +24,35 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from typing import Any
+from enum import StrEnum
+
+from pydantic import BaseModel
 
 from fleetdaq.contract.cdr import decode, encode
 from fleetdaq.contract.errors import WireError
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import (
-    ACTIONS,
     COMMAND_RECORD_TYPE,
     CommandRecord,
     OutputCommand,
     OutputReply,
+    OutputState,
 )
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
-from fleetdaq.hub.read_model import HubView, ReadModel, to_jsonable
+from fleetdaq.hub.read_model import COMMANDS, HubView, JsonObject, ReadModel, to_jsonable
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import commands_topic
-from fleetdaq.hub.requests import Caller, OperatorQueryable, as_caller, parse_object, text
+from fleetdaq.hub.requests import (
+    VALUED,
+    BadRequest,
+    Caller,
+    ControlAction,
+    ControlRequest,
+    OperatorQueryable,
+    read_control_request,
+    refusal,
+)
 from fleetdaq.hub.routing.router import Router
 
 log = logging.getLogger("fleetdaq.commands")
@@ -53,7 +64,24 @@ Blocked = Callable[[str, str], str | None]
 """blocked(node, output): the name of a hub interlock holding that output, or None."""
 
 
-def refused(cmd: OutputCommand, refusal: str, message: str) -> OutputReply:
+class Refusal(StrEnum):
+    """Why a command is refused (`OutputReply.refusal`; `fleetdaq.contract.messages.REFUSALS`, the
+    same strings): by the edge, or by the hub before or instead of an answer."""
+
+    UNKNOWN_OUTPUT = "unknown_output"
+    NOT_ARMED = "not_armed"
+    OUT_OF_LIMITS = "out_of_limits"
+    TOO_FAST = "too_fast"
+    INTERLOCK = "interlock"
+    SAFE_STATE = "safe_state"
+    TOO_OLD = "too_old"
+    NOT_ALLOWED = "not_allowed"
+    DEVICE_ERROR = "device_error"
+    TIMEOUT = "timeout"
+    """The hub heard no (usable) reply."""
+
+
+def refused(cmd: OutputCommand, refusal: Refusal, message: str) -> OutputReply:
     return OutputReply(
         command_id=cmd.command_id, output=cmd.output, action=cmd.action, applied=False,
         refusal=refusal, message=message, requested=cmd.value, readback=math.nan,
@@ -111,9 +139,9 @@ class CommandService:
 
     # --- sending --------------------------------------------------------------------------------
 
-    def outputs(self) -> dict[str, Any]:
+    def outputs(self) -> dict[str, BaseModel]:
         """Every output of the site: ``node/output`` -> its config."""
-        out: dict[str, Any] = {}
+        out: dict[str, BaseModel] = {}
         for node, cfg in self.site.nodes.items():
             for name, ocfg in getattr(cfg, "outputs", {}).items():
                 out[f"{node}/{name}"] = ocfg
@@ -149,13 +177,13 @@ class CommandService:
         )
         sent_ns = time.time_ns()
         if f"{node}/{output}" not in self.outputs():
-            reply = refused(cmd, "unknown_output", f"the site file has no output {node}/{output}")
+            reply = refused(
+                cmd, Refusal.UNKNOWN_OUTPUT, f"the site file has no output {node}/{output}"
+            )
         elif (
-            action in ("set", "pulse")
-            and not unblocked
-            and (lock := self.blocked(node, output)) is not None
+            action in VALUED and not unblocked and (lock := self.blocked(node, output)) is not None
         ):
-            reply = refused(cmd, "interlock", f"interlock {lock} active")
+            reply = refused(cmd, Refusal.INTERLOCK, f"interlock {lock} active")
         else:
             reply = self._ask(node, cmd)
         self._record(node, cmd, reply, sent_ns)
@@ -191,14 +219,16 @@ class CommandService:
                 try:
                     reply = decode(r.ok.payload.to_bytes(), OutputReply)
                 except WireError as err:
-                    return refused(cmd, "timeout", f"{node} answered with something else: {err}")
+                    return refused(
+                        cmd, Refusal.TIMEOUT, f"{node} answered with something else: {err}"
+                    )
                 if reply.command_id != cmd.command_id:
-                    return refused(cmd, "timeout", f"{node} answered another command")
+                    return refused(cmd, Refusal.TIMEOUT, f"{node} answered another command")
                 return reply
         except Exception as err:  # the network, not the command: a timeout for the caller
             log.warning("command to %s/%s: %s", node, cmd.output, err)
-            return refused(cmd, "timeout", f"could not ask {node}: {err}")
-        return refused(cmd, "timeout", f"{node} did not answer within {self.timeout_s:g} s")
+            return refused(cmd, Refusal.TIMEOUT, f"could not ask {node}: {err}")
+        return refused(cmd, Refusal.TIMEOUT, f"{node} did not answer within {self.timeout_s:g} s")
 
     def _record(self, node: str, cmd: OutputCommand, reply: OutputReply, sent_ns: int) -> None:
         now = time.time_ns()
@@ -210,11 +240,11 @@ class CommandService:
                 self.applied += 1
             else:
                 self.refused += 1
-                self.timeouts += reply.refusal == "timeout"
+                self.timeouts += reply.refusal == Refusal.TIMEOUT
         record = CommandRecord(cmd, reply, node, sent_ns, now)
         topic = commands_topic(node) if node in self.site.nodes else HUB_COMMANDS_TOPIC
         self.recorder.record(topic, encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
-        what = f"{cmd.action} {cmd.value:g}" if cmd.action in ("set", "pulse") else cmd.action
+        what = f"{cmd.action} {cmd.value:g}" if cmd.action in VALUED else cmd.action
         by = f"{cmd.sender} {cmd.who}".strip()
         tag = "command_applied" if reply.applied else "command_refused"
         if reply.replay:
@@ -259,84 +289,57 @@ class CommandService:
             replay=reply.replay,
         )
         self.model.put(
-            "commands",
+            COMMANDS,
             {"sent": self.sent, "applied": self.applied, "refused": self.refused,
              "timeouts": self.timeouts, "replayed": self.replayed},
         )  # fmt: skip
 
     # --- operators' requests ----------------------------------------------------------------
 
-    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
-        """One operator request (JSON) -> its answer (JSON-ready). Blocks while the edge is
-        asked: run it on a worker thread. With `caller` (security on), its name is the user
+    def handle(self, raw: bytes, caller: Caller | None = None) -> JsonObject:
+        """One operator request on ``hub/out`` (JSON) -> its answer (JSON-ready): parsed
+        (`read_control_request`), then `act`. With `caller` (security on), its name is the user
         recorded, and only the control role may command."""
         try:
-            req = self._parse(raw)
-            refused = as_caller(req, caller, req["action"], ("list",))
-            if refused:
-                raise ValueError(refused)
+            request = read_control_request(raw)
+            if caller is not None:
+                request = request.by(caller.name)
+                why = refusal(caller, request.action, (ControlAction.LIST,))
+                if why:
+                    raise BadRequest(why)
         except ValueError as err:
             return {"ok": False, "error": str(err)}
-        if req["action"] == "list":
+        return self.act(request)
+
+    def act(self, request: ControlRequest) -> JsonObject:
+        """An operator's parsed request -> its answer (JSON-ready): the outputs' list, or the
+        command sent and its reply. Blocks while the edge is asked: run it on a worker thread.
+        The dashboard calls this with the request it parsed (the same parser)."""
+        if request.action is ControlAction.LIST:
             return {"ok": True, "error": "", "outputs": self.listing()}
-        node, output = req["output"].split("/", 1)
         cmd, reply = self.send(
-            node,
-            output,
-            req["action"],
-            req["value"],
-            req["pulse_s"],
+            request.node,
+            request.output_name,
+            request.action,
+            request.value,
+            request.pulse_s,
             "operator",
-            f"{req['user']}@{req['host']}",
-            req["reason"],
-            req["command_id"],
+            f"{request.user}@{request.host}",
+            request.reason,
+            request.command_id,
         )
         return {"ok": reply.applied, "error": "", "command": to_jsonable(cmd),
                 "reply": to_jsonable(reply)}  # fmt: skip
 
-    @staticmethod
-    def _parse(raw: bytes) -> dict[str, Any]:
-        allowed = ("action", "output", "value", "pulse_s", "reason", "user", "host", "command_id")
-        req = parse_object(raw, allowed)
-        action = req.get("action", "list")
-        if action != "list" and action not in ACTIONS:
-            raise ValueError(f"unknown action {action!r} (one of list, {', '.join(ACTIONS)})")
-        out: dict[str, Any] = {"action": action}
-        if action == "list":
-            return out
-        output = text(req, "output", 200)
-        if output.count("/") != 1:
-            raise ValueError("output must be NODE/OUTPUT")
-        out["output"] = output
-        for key, default in (("value", math.nan), ("pulse_s", 0.0)):
-            v = req.get(key, default)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not math.isfinite(v if key != "value" or action in ("set", "pulse") else 0.0)
-            ):
-                raise ValueError(f"{key} must be a finite number")
-            out[key] = float(v)
-        if action in ("set", "pulse") and math.isnan(out["value"]):
-            raise ValueError(f"{action} needs a value")
-        if action == "pulse" and not 0 < out["pulse_s"] <= 3600:
-            raise ValueError("a pulse lasts more than 0 s and at most 3600 s")
-        # Requester text: checked before anything is sent, so that what is done can be recorded.
-        out["reason"] = text(req, "reason", 500)
-        out["user"] = text(req, "user", 100, "unknown")
-        out["host"] = text(req, "host", 255, "unknown")
-        out["command_id"] = text(req, "command_id", 128) or None
-        return out
-
-    def listing(self) -> list[dict[str, Any]]:
+    def listing(self) -> list[JsonObject]:
         """Every output: its config, and what its node last said about it (health)."""
         view = self.snapshot()
-        states: dict[str, Any] = {}
+        states: dict[str, OutputState] = {}
         for n in view.nodes:
             if n.health is not None:
                 for o in n.health.outputs:
                     states[f"{n.node}/{o.name}"] = o
-        rows = []
+        rows: list[JsonObject] = []
         for ref, cfg in sorted(self.outputs().items()):
             node, output = ref.split("/", 1)
             state = states.get(ref)

@@ -6,10 +6,10 @@ look per demo refresh."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.plots import LivePlots
+from fleetdaq.hub.read_model import JsonObject
 
 ROBOT_DRIVER = "weld_robot_sim"
 
@@ -25,7 +25,7 @@ class RobotWaits:
     missed: int = 0
     """Waits that ended between two looks (their length is not known)."""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JsonObject:
         mean = sum(self.waits_s) / len(self.waits_s) if self.waits_s else None
         return {
             "layers": self.layers,
@@ -62,20 +62,20 @@ class LayerWaits:
             if s is None or s["latest_ns"] == 0:
                 continue
             v = dict(zip(s["channels"], s["latest"], strict=True))
-            if v.get("layer") is not None:
-                r.layers = int(v["layer"])
-            if v.get("timeouts") is not None:
-                r.timeouts = int(v["timeouts"])
+            if (layer := v.get("layer")) is not None:
+                r.layers = int(layer)
+            if (timeouts := v.get("timeouts")) is not None:
+                r.timeouts = int(timeouts)
             waits = v.get("waits")
             if waits is None or int(waits) <= r.waits_seen:
                 continue
             new = int(waits) - r.waits_seen
             r.waits_seen = int(waits)
             r.missed += new - 1
-            if v.get("last_wait_s") is not None:
-                r.waits_s.append(float(v["last_wait_s"]))
+            if (last_wait := v.get("last_wait_s")) is not None:
+                r.waits_s.append(float(last_wait))
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> JsonObject:
         return {ref: r.to_dict() for ref, r in self.robots.items()}
 
     def lines(self) -> list[str]:

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from enum import StrEnum
 
 import numpy as np
 
@@ -31,10 +31,12 @@ from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.control import (
+    Action,
     AlarmCondition,
     AllCondition,
     AnyCondition,
     ChannelCondition,
+    Condition,
     EventAction,
     InterlockConfig,
     NodeCondition,
@@ -47,9 +49,16 @@ from fleetdaq.hub.config.control import (
 )
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.control.commands import CommandService
-from fleetdaq.hub.read_model import HubView, ReadModel
+from fleetdaq.hub.read_model import (
+    RULES,
+    HubView,
+    InterlockDict,
+    ReadModel,
+    RuleDict,
+    RulesDict,
+)
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
-from fleetdaq.hub.requests import Caller, OperatorQueryable
+from fleetdaq.hub.requests import Caller, ControlAction, OperatorQueryable
 from fleetdaq.hub.routing.router import Router
 from fleetdaq.hub.supervision.alarms.conditions import SampleCondition
 from fleetdaq.runtime.threads import NamedThread, name_os_thread
@@ -98,12 +107,12 @@ def _state_matches(state: str, wanted: str) -> bool:
 class Tree:
     """A condition tree with its channel leaves; evaluated against the latest read model."""
 
-    def __init__(self, cond: Any, on_delay_ns: int = 0) -> None:
+    def __init__(self, cond: Condition, on_delay_ns: int = 0) -> None:
         self.cond = cond
         self.leaves: dict[int, ChannelLeaf] = {}
         self._build(cond, on_delay_ns if isinstance(cond, ChannelCondition) else 0)
 
-    def _build(self, c: Any, delay: int) -> None:
+    def _build(self, c: Condition, delay: int) -> None:
         if isinstance(c, ChannelCondition):
             self.leaves[id(c)] = ChannelLeaf(c, delay)
         elif isinstance(c, AllCondition):
@@ -118,7 +127,7 @@ class Tree:
     def holds(self, view: HubView) -> bool:
         return self._eval(self.cond, view)
 
-    def _eval(self, c: Any, view: HubView) -> bool:
+    def _eval(self, c: Condition, view: HubView) -> bool:
         if isinstance(c, ChannelCondition):
             return self.leaves[id(c)].holds
         if isinstance(c, AlarmCondition):
@@ -148,6 +157,16 @@ class Tree:
         raise TypeError(f"not a condition: {c!r}")
 
 
+class RulePhase(StrEnum):
+    """Where a rule is: waiting for `when` (idle), `when` holds but not yet for `for_s`, the
+    precondition or the cooldown (pending), fired until `when` clears (active), or off."""
+
+    IDLE = "idle"
+    PENDING = "pending"
+    ACTIVE = "active"
+    DISABLED = "disabled"
+
+
 @dataclass(slots=True)
 class RuleState:
     name: str
@@ -156,9 +175,7 @@ class RuleState:
     precondition: Tree | None
     channel_timed: bool
     """`for_s` counted in acquisition time by the single channel condition itself."""
-    state: str = "idle"
-    """"idle", "pending" (when holds, waiting for for_s / the precondition / the cooldown),
-    "active" (fired; until when clears), "disabled"."""
+    state: RulePhase = RulePhase.IDLE
     since_ns: int = 0
     when_since_ns: int | None = None
     fired: int = 0
@@ -232,7 +249,7 @@ class RuleEngine:
                 Tree(r.when, round(r.for_s * 1e9)),
                 Tree(r.precondition) if r.precondition is not None else None,
                 isinstance(r.when, ChannelCondition),
-                state="idle" if r.enabled else "disabled",
+                state=RulePhase.IDLE if r.enabled else RulePhase.DISABLED,
             )
             for name, r in site.rules.items()
         ]
@@ -332,18 +349,18 @@ class RuleEngine:
                 self._step(r, view, now)
 
     def _step(self, r: RuleState, view: HubView, now: int) -> None:
-        if r.state == "disabled":
+        if r.state is RulePhase.DISABLED:
             return
         when = r.when.holds(view)
         if not when:
             r.when_since_ns = None
-            if r.state == "active":
-                r.state, r.since_ns = "idle", now
+            if r.state is RulePhase.ACTIVE:
+                r.state, r.since_ns = RulePhase.IDLE, now
                 self._fire(r, r.cfg.on_clear, "cleared")
-            elif r.state == "pending":
-                r.state, r.since_ns = "idle", now
+            elif r.state is RulePhase.PENDING:
+                r.state, r.since_ns = RulePhase.IDLE, now
             return
-        if r.state == "active":
+        if r.state is RulePhase.ACTIVE:
             return
         if r.when_since_ns is None:
             r.when_since_ns = now
@@ -351,14 +368,14 @@ class RuleEngine:
         pre = r.precondition is None or r.precondition.holds(view)
         cooled = now - r.last_fired_ns >= round(r.cfg.cooldown_s * 1e9) or not r.fired
         if held and pre and cooled:
-            r.state, r.since_ns = "active", now
+            r.state, r.since_ns = RulePhase.ACTIVE, now
             r.fired += 1
             r.last_fired_ns = now
             self._fire(r, r.cfg.do, "fired")
-        elif r.state == "idle":
-            r.state, r.since_ns = "pending", now
+        elif r.state is RulePhase.IDLE:
+            r.state, r.since_ns = RulePhase.PENDING, now
 
-    def _fire(self, r: RuleState, actions: list[Any], why: str) -> None:
+    def _fire(self, r: RuleState, actions: list[Action], why: str) -> None:
         self.bus.emit(
             logging.INFO,
             "rules",
@@ -370,7 +387,7 @@ class RuleEngine:
         if actions:
             self._pool.submit(self._run_actions, r, actions, why)
 
-    def _run_actions(self, r: RuleState, actions: list[Any], why: str) -> None:
+    def _run_actions(self, r: RuleState, actions: list[Action], why: str) -> None:
         results: list[str] = []
         for action in actions:
             try:
@@ -382,12 +399,12 @@ class RuleEngine:
             r.last_result = "; ".join(results)
             r.results = (r.results + results)[-20:]
 
-    def _act(self, action: Any, who: str, reason: str) -> str:
+    def _act(self, action: Action, who: str, reason: str) -> str:
         if isinstance(action, SetAction | PulseAction):
             target = action.set if isinstance(action, SetAction) else action.pulse
             node, output = target.split("/")
             pulse = action.for_s if isinstance(action, PulseAction) else 0.0
-            kind = "set" if isinstance(action, SetAction) else "pulse"
+            kind = ControlAction.SET if isinstance(action, SetAction) else ControlAction.PULSE
             _, reply = self.commands.send(
                 node, output, kind, action.value, pulse, "rule", who, reason
             )
@@ -426,8 +443,8 @@ class RuleEngine:
                 continue
             # Sent past the interlock itself (it is the interlock that sends it).
             self.commands.send_unblocked(
-                node, output, "set", float(cfg.safe), 0.0, "rule", f"interlock:{lock.name}",
-                f"interlock {lock.name} tripped",
+                node, output, ControlAction.SET, float(cfg.safe), 0.0, "rule",
+                f"interlock:{lock.name}", f"interlock {lock.name} tripped",
             )  # fmt: skip
 
     def blocked(self, node: str, output: str) -> str | None:
@@ -436,9 +453,9 @@ class RuleEngine:
 
     # --- what others see ----------------------------------------------------------------------
 
-    def states(self) -> dict[str, Any]:
+    def states(self) -> RulesDict:
         with self.lock:
-            rules = [
+            rules: list[RuleDict] = [
                 {
                     "name": r.name,
                     "state": r.state,
@@ -455,7 +472,7 @@ class RuleEngine:
                 }
                 for r in self.rules
             ]
-            interlocks = [
+            interlocks: list[InterlockDict] = [
                 {
                     "name": i.name,
                     "active": i.active,
@@ -469,8 +486,8 @@ class RuleEngine:
         return {"rules": rules, "interlocks": interlocks}
 
     def _publish(self) -> None:
-        self.model.put("rules", self.states())
+        self.model.put(RULES, self.states())
 
-    def _answer(self, raw: bytes, caller: Caller | None) -> dict[str, Any]:
+    def _answer(self, raw: bytes, caller: Caller | None) -> RulesDict:
         """``hub/rules``: every rule's and interlock's state (read only: any operator)."""
         return self.states()

@@ -20,7 +20,7 @@ import math
 import platform
 import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Protocol
 
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import (
@@ -34,7 +34,7 @@ from prometheus_client.utils import floatToGoString
 
 from fleetdaq import __version__
 from fleetdaq.contract.messages import NodeHealth
-from fleetdaq.hub.read_model import HubView
+from fleetdaq.hub.read_model import HubView, member, number
 
 SEVERITIES = ("critical", "major", "minor", "info")
 RECORDER_STATES = ("recording", "stopped", "disk_error", "failed", "starting")
@@ -206,7 +206,11 @@ def _nodes(view: HubView) -> Iterator[Metric]:
             )
 
 
-def _health(gauge: Any, node: str, h: NodeHealth) -> None:
+class _Gauge(Protocol):
+    def __call__(self, name: str, doc: str, node: str, value: float, **extra: str) -> None: ...
+
+
+def _health(gauge: _Gauge, node: str, h: NodeHealth) -> None:
     host = h.host
     gauge("fleetdaq_node_uptime_seconds", "Since the agent started.", node, h.uptime_s)
     gauge("fleetdaq_node_cpu_usage_ratio", "CPU in use, 0..1.", node, host.cpu_percent / 100)
@@ -320,15 +324,17 @@ def _recorder(view: HubView) -> Iterator[Metric]:
     snap = view.snapshots
     if snap:
         yield GaugeMetricFamily(
-            "fleetdaq_snapshot_buffer_bytes", "Held by the snapshot buffer.", snap["held_bytes"]
+            "fleetdaq_snapshot_buffer_bytes",
+            "Held by the snapshot buffer.",
+            number(snap, "held_bytes"),
         )
         yield GaugeMetricFamily(
             "fleetdaq_snapshot_buffer_covers_seconds",
             "Span the snapshot buffer holds.",
-            snap["covers_s"],
+            number(snap, "covers_s"),
         )
         yield CounterMetricFamily(
-            "fleetdaq_snapshots_written", "Snapshots written.", value=snap["written"]
+            "fleetdaq_snapshots_written", "Snapshots written.", value=number(snap, "written")
         )
 
 
@@ -357,14 +363,14 @@ def _partitions(view: HubView, now: float) -> Iterator[Metric]:
     )
     for name, p in sorted(view.partitions.items()):
         up.add_metric([name], float(bool(p.get("alive"))))
-        if p.get("report_received_ns"):
-            age.add_metric([name], max(0.0, now - p["report_received_ns"] / 1e9))
-        r = p.get("recorder") or {}
+        if received_ns := number(p, "report_received_ns"):
+            age.add_metric([name], max(0.0, now - received_ns / 1e9))
+        r = member(p, "recorder")
         if r:
             for s in RECORDER_STATES:
                 state.add_metric([name, s], float(r.get("state") == s))
-            written.add_metric([name], r.get("bytes_written", 0))
-            errors.add_metric([name], r.get("write_errors", 0))
+            written.add_metric([name], number(r, "bytes_written") or 0)
+            errors.add_metric([name], number(r, "write_errors") or 0)
     yield from (up, age, state, written, errors)
 
 
@@ -392,7 +398,9 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
             ("rejected", "Mails the server refused for good."),
             ("suppressed", "Notifications not mailed by the policy."),
         ):
-            yield CounterMetricFamily(f"fleetdaq_notifications_{key}", doc, value=n.get(key, 0))
+            yield CounterMetricFamily(
+                f"fleetdaq_notifications_{key}", doc, value=number(n, key) or 0
+            )
     if view.certificates:
         ends = GaugeMetricFamily(
             "fleetdaq_certificate_expiry_timestamp_seconds",
@@ -400,8 +408,8 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
             labels=["certificate"],
         )
         for which, cert in sorted(view.certificates.items()):
-            if "not_after_ns" in cert:
-                ends.add_metric([which], cert["not_after_ns"] / 1e9)
+            if (end := number(cert, "not_after_ns")) is not None:
+                ends.add_metric([which], end / 1e9)
         yield ends
     events = CounterMetricFamily("fleetdaq_events", "Events logged, by level.", labels=["level"])
     for level, count in sorted(view.event_counts.items()):
@@ -438,7 +446,7 @@ def _hub(view: HubView, now: float) -> Iterator[Metric]:
         "fleetdaq_bus_dropped_events", "Events a slow subscriber missed.", labels=["subscriber"]
     )
     for b in view.bus:
-        dropped.add_metric([b["name"]], b["dropped"])
+        dropped.add_metric([str(b["name"])], number(b, "dropped") or 0)
     yield dropped
     failed = GaugeMetricFamily(
         "fleetdaq_hub_service_failed", "1 for a hub service whose worker died.", labels=["service"]

@@ -13,23 +13,25 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from fleetdaq.hub.jit import Compiled
+from fleetdaq.hub.jit import Compiled, Njit
+
+Floats = npt.NDArray[np.float64]
 
 
 def fold_columns(
-    lo: Any,
-    hi: Any,
-    bucket: Any,
+    lo: Floats,
+    hi: Floats,
+    bucket: npt.NDArray[np.int64],
     bucket_ns: int,
     column_ns: int,
     first_bucket: int,
     last_bucket: int,
-    cols: Any,
-    minmax: Any,
+    cols: npt.NDArray[np.intp],
+    minmax: npt.NDArray[np.float32],
     start: int,
     newest: int,
 ) -> bool:
@@ -57,15 +59,15 @@ def settle(timeout: float) -> None:
 
 
 def _fold(  # pragma: no cover (compiled)
-    lo: Any,
-    hi: Any,
-    bucket: Any,
+    lo: Floats,
+    hi: Floats,
+    bucket: npt.NDArray[np.int64],
     bucket_ns: int,
     column_ns: int,
     first_bucket: int,
     last_bucket: int,
-    cols: Any,
-    minmax: Any,
+    cols: npt.NDArray[np.intp],
+    minmax: npt.NDArray[np.float32],
     start: int,
     newest: int,
 ) -> None:
@@ -95,7 +97,7 @@ def _fold(  # pragma: no cover (compiled)
                 minmax[j, 1, p] = b
 
 
-def _compile(jit: Any) -> Callable[..., None]:
+def _compile(jit: Njit) -> Callable[..., None]:
     kernel: Callable[..., None] = jit(_fold)
     # Compiled now, and proven right: three buckets, two held (columns 1 and 2), one not.
     lo = np.array([[1.0, 5.0], [2.0, -3.0], [0.0, 0.0]])

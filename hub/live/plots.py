@@ -19,7 +19,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -27,9 +27,21 @@ import numpy.typing as npt
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live import plot_kernels
+from fleetdaq.hub.read_model import JsonObject
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 
 MIN_BUCKET_NS = 2_000_000
+
+
+class StreamInfo(TypedDict):
+    """What the live plots hold of one ``node/stream`` (`LivePlots.streams`)."""
+
+    channels: list[str]
+    units: list[str]
+    bucket_ns: int
+    latest_ns: int
+    latest: list[float | None]
+    """The newest scan, None where a value is not a number."""
 
 
 @dataclass(slots=True)
@@ -134,7 +146,7 @@ class LivePlots:
         written, so live plots follow new data when it comes; None: stop."""
         self._on_write = callback
 
-    def streams(self) -> dict[str, dict[str, Any]]:
+    def streams(self) -> dict[str, StreamInfo]:
         """``node/stream`` -> channels, units, bucket, newest sample time, newest values."""
         with self._lock:
             return {
@@ -219,7 +231,7 @@ class LivePlots:
         width: int,
         span_s: float,
         end_ns: int | None = None,
-    ) -> dict[str, Any]:
+    ) -> JsonObject:
         """The last `span_s` (up to `end_ns`, default: the newest sample) of `channels` of
         ``node/stream``, as `width` pixel columns of (min, max); None where no sample fell.
 
@@ -288,7 +300,7 @@ class Frame:
     """(width, channels); NaN where no sample fell."""
     hi: npt.NDArray[np.float64]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JsonObject:
         return {
             "stream": self.stream,
             "start_ns": self.start_ns,

@@ -8,11 +8,12 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
+
+import zenoh
 
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.keys import SiteKeys
-from fleetdaq.hub.read_model import HubView, to_jsonable
+from fleetdaq.hub.read_model import HubView, JsonObject, to_json_object, to_jsonable
 from fleetdaq.hub.requests import Caller, OperatorQueryable
 from fleetdaq.hub.routing.router import Router
 
@@ -47,10 +48,9 @@ class StatusService:
     def start(self) -> None:
         self.queryable.start()
 
-    def _answer(self, raw: bytes, caller: Caller | None) -> dict[str, Any]:
+    def _answer(self, raw: bytes, caller: Caller | None) -> JsonObject:
         self.answered += 1
-        out: dict[str, Any] = to_jsonable(self.snapshot())
-        return out
+        return to_json_object(self.snapshot())
 
     def stop(self) -> None:
         self.queryable.stop()
@@ -60,8 +60,8 @@ class StatusService:
 
 
 def query_status(
-    session: Any, keys: SiteKeys, timeout_s: float = 5.0, key: str | None = None
-) -> dict[str, Any] | None:
+    session: zenoh.Session, keys: SiteKeys, timeout_s: float = 5.0, key: str | None = None
+) -> JsonObject | None:
     """Ask the hub (or at `key`, a partition hub) for its status; None when none answers within
     `timeout_s`."""
     deadline = time.monotonic() + timeout_s
@@ -70,7 +70,7 @@ def query_status(
             key or keys.hub("status"), timeout=max(0.5, deadline - time.monotonic())
         ):
             if reply.ok is not None:
-                out: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                out: JsonObject = json.loads(reply.ok.payload.to_bytes())
                 return out
         if time.monotonic() >= deadline:
             return None

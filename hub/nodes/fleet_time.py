@@ -22,7 +22,7 @@ from typing import Any
 
 from fleetdaq.contract.messages import Event, NodeHealth
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import FLEET, FleetDict, NodeTimeDict, ReadModel
 from fleetdaq.ptp.status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
 
 Emit = Callable[..., None]
@@ -57,7 +57,7 @@ class NodeTime:
             as_of_ns=int(d["as_of_ns"]),
         )
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> NodeTimeDict:
         return {
             "node": self.node,
             "state": self.state.value,
@@ -122,7 +122,7 @@ class FleetView:
             return 1
         return 0
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FleetDict:
         return {
             "nodes": [n.to_dict() for n in self.nodes],
             "grandmasters": list(self.grandmasters),
@@ -312,7 +312,7 @@ class FleetTimeService:
     name = "fleet-time"
 
     def __init__(self, bus: EventBus, model: ReadModel) -> None:
-        self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put("fleet", v.to_dict()))
+        self.fleet = FleetTime(bus.emit, on_change=lambda v: model.put(FLEET, v.to_dict()))
         self._sub = bus.subscribe(self.name, self.fleet.on_event)
 
     def start(self) -> None:

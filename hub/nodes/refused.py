@@ -8,7 +8,7 @@ import threading
 import time
 
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import REFUSED_KEYS, REFUSED_TOTAL, ReadModel
 
 _MAX_KEYS = 256
 _REPORT_EVERY_S = 60.0
@@ -44,8 +44,8 @@ class RefusedKeys:
                 self._last_view = now
                 counts, total = tuple(sorted(self.counts.items())), self.total
         if view:
-            self.model.put("refused_keys", counts)
-            self.model.put("refused_total", total)
+            self.model.put(REFUSED_KEYS, counts)
+            self.model.put(REFUSED_TOTAL, total)
         if report:
             self.bus.emit(
                 logging.WARNING,
@@ -60,5 +60,5 @@ class RefusedKeys:
     def publish(self) -> None:
         with self._lock:
             counts, total = tuple(sorted(self.counts.items())), self.total
-        self.model.put("refused_keys", counts)
-        self.model.put("refused_total", total)
+        self.model.put(REFUSED_KEYS, counts)
+        self.model.put(REFUSED_TOTAL, total)

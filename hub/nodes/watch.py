@@ -16,7 +16,6 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 import zenoh
 
@@ -29,10 +28,10 @@ from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.nodes.event_delivery import EventDelivery, Verdict
 from fleetdaq.hub.nodes.refused import RefusedKeys
-from fleetdaq.hub.read_model import NodeView, ReadModel
+from fleetdaq.hub.read_model import MALFORMED, NODES, NodeView, ReadModel
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import health_topic
-from fleetdaq.hub.routing.router import Router
+from fleetdaq.hub.routing.router import Router, undeclare
 
 log = logging.getLogger("fleetdaq.hub")
 
@@ -104,7 +103,7 @@ class NodeWatch:
         self._malformed: dict[str, int] = {}
         self._buckets = {n: _Bucket(events_per_s, event_burst) for n in self.known}
         self._lock = threading.Lock()
-        self._subs: list[Any] = []
+        self._subs: list[zenoh.Subscriber[None]] = []
 
     def start(self) -> None:
         session = self.router.session
@@ -123,7 +122,7 @@ class NodeWatch:
 
     def stop(self) -> None:
         for sub in self._subs:
-            sub.undeclare()
+            undeclare(sub)
         self._subs = []
 
     def failure(self) -> str | None:
@@ -152,7 +151,7 @@ class NodeWatch:
 
     # --- from the network ------------------------------------------------------------------------
 
-    def _node_of(self, sample: Any, kind: Kind, what: str) -> str | None:
+    def _node_of(self, sample: zenoh.Sample, kind: Kind, what: str) -> str | None:
         key_text = str(sample.key_expr)
         key = self.keys.parse(key_text)
         if key is None or key.kind is not kind or key.node not in self.known:
@@ -165,7 +164,7 @@ class NodeWatch:
             n = self._malformed.get(node, 0) + 1
             self._malformed[node] = n
             malformed = tuple(sorted(self._malformed.items()))
-        self.model.put("malformed", malformed)
+        self.model.put(MALFORMED, malformed)
         self.bus.emit_counted(
             n,
             logging.WARNING,
@@ -175,7 +174,7 @@ class NodeWatch:
             node=node,
         )
 
-    def _on_alive(self, sample: Any) -> None:
+    def _on_alive(self, sample: zenoh.Sample) -> None:
         node = self._node_of(sample, Kind.ALIVE, "a liveliness token")
         if node is None:
             return
@@ -196,7 +195,7 @@ class NodeWatch:
             node=node,
         )
 
-    def _on_health(self, sample: Any) -> None:
+    def _on_health(self, sample: zenoh.Sample) -> None:
         node = self._node_of(sample, Kind.HEALTH, "health")
         if node is None:
             return
@@ -215,7 +214,7 @@ class NodeWatch:
             return
         self.accept_health(node, health, payload, recv_ns)
 
-    def _on_event(self, sample: Any) -> None:
+    def _on_event(self, sample: zenoh.Sample) -> None:
         node = self._node_of(sample, Kind.EVENTS, "an event")
         if node is None:
             return
@@ -282,4 +281,4 @@ class NodeWatch:
                 )
                 for n in sorted(self._alive)
             )
-        self.model.put("nodes", views)
+        self.model.put(NODES, views)

@@ -42,6 +42,7 @@ from fleetdaq.contract.cdr import encode
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
+from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.context import event_node
 from fleetdaq.hub.periodic import Periodic
 from fleetdaq.hub.read_model import (

@@ -23,6 +23,9 @@ from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.nodes.watch import MAX_PAYLOAD_BYTES
 from fleetdaq.hub.partitions.runtime import partition_event_node, partition_key
 from fleetdaq.hub.read_model import (
+    PARTITION_HUBS,
+    PARTITION_STREAMS,
+    PARTITIONS,
     DiskView,
     NodeView,
     ReadModel,
@@ -205,6 +208,6 @@ class PartitionWatch:
                 )
                 for name in sorted(state)
             )
-        self.model.put("partition_streams", streams)
-        self.model.put("partitions", state)
-        self.model.put("partition_hubs", hubs)
+        self.model.put(PARTITION_STREAMS, streams)
+        self.model.put(PARTITIONS, state)
+        self.model.put(PARTITION_HUBS, hubs)

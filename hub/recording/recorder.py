@@ -47,7 +47,7 @@ from fleetdaq.contract.wire import (
 )
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
-from fleetdaq.hub.read_model import ReadModel, RecorderView
+from fleetdaq.hub.read_model import RECORDER, STREAMS, ReadModel, RecorderView
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.seams import EventAcks, Refusals
 from fleetdaq.hub.recording.session import EVENTS_TOPIC, RecordingSession, StreamSelector, topic_of
@@ -519,9 +519,9 @@ class Recorder:
             )
         current = s.current_file if s is not None else None
         size = s.current_size() if s is not None else 0
-        self.model.put("streams", tuple(st.view() for st in self.streams.values()))
+        self.model.put(STREAMS, tuple(st.view() for st in self.streams.values()))
         self.model.put(
-            "recorder",
+            RECORDER,
             RecorderView(
                 state=state,
                 session=s.name if s is not None else "",

@@ -39,7 +39,7 @@ from fleetdaq.contract.wire import plausible_time
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.hub import SnapshotConfig
 from fleetdaq.hub.config.site import SiteConfig
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import SNAPSHOTS, ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.session import RecordingSession, topic_of
 from fleetdaq.runtime.threads import name_os_thread
@@ -292,7 +292,7 @@ class SnapshotBuffer:
         }
 
     def _publish(self) -> None:
-        self.model.put("snapshots", self.counters())
+        self.model.put(SNAPSHOTS, self.counters())
 
 
 def _discard(session: RecordingSession | None) -> str:

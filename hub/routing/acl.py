@@ -33,10 +33,9 @@ the link between two hubs breaks, their traffic does not detour through a third.
 
 from __future__ import annotations
 
-from typing import Any
-
 from fleetdaq.contract.keys import HUB, SiteKeys
 from fleetdaq.hub.config.site import SiteConfig
+from fleetdaq.hub.read_model import JsonObject
 from fleetdaq.runtime.security import OPERATOR_CN_PREFIX, PARTITION_CN_PREFIX
 
 OPERATOR_SERVICES = (
@@ -68,7 +67,7 @@ def by(keys: SiteKeys, service: str, name: str) -> str:
     return f"{keys.hub(service)}/by/{name}"
 
 
-def _rule(rid: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
+def _rule(rid: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> JsonObject:
     return {
         "id": rid,
         "permission": "allow",
@@ -78,12 +77,12 @@ def _rule(rid: str, flows: list[str], messages: list[str], key_exprs: list[str])
     }
 
 
-def access_control(site: SiteConfig) -> dict[str, Any]:
+def access_control(site: SiteConfig) -> JsonObject:
     """Zenoh's ``access_control`` section for the hub's router."""
     keys = SiteKeys(site.site)
-    rules: list[dict[str, Any]] = []
-    subjects: list[dict[str, Any]] = []
-    policies: list[dict[str, Any]] = []
+    rules: list[JsonObject] = []
+    subjects: list[JsonObject] = []
+    policies: list[JsonObject] = []
     # The hub's subscriptions as it declares them (wildcards over every node): a node's
     # publisher learns of them, or its client session would not send at all. The router
     # checks a declaration by its whole key expression, so the wildcard itself is allowed.
@@ -138,7 +137,7 @@ def access_control(site: SiteConfig) -> dict[str, Any]:
     }
 
 
-def _partition_rules(site: SiteConfig, keys: SiteKeys, name: str) -> list[dict[str, Any]]:
+def _partition_rules(site: SiteConfig, keys: SiteKeys, name: str) -> list[JsonObject]:
     """Partition hub `name`'s link (`fleetdaq pki issue NAME --partition`): what it and its
     nodes send the main hub, and what the main hub sends them."""
     nodes = site.nodes_of(name)

@@ -17,7 +17,13 @@ from typing import TypeVar
 
 from fleetdaq.contract.requester_text import text_problem
 from fleetdaq.hub.bus import EventBus
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import (
+    REFUSED_ACL,
+    REFUSED_ACL_TOTAL,
+    REFUSED_TLS,
+    REFUSED_TLS_TOTAL,
+    ReadModel,
+)
 from fleetdaq.hub.routing.router_log import (
     AclDenial,
     PeerAccepted,
@@ -175,10 +181,10 @@ class RefusedTraffic:
             acl = tuple((p, c, n) for (p, c), n in sorted(self.acl.items()))
             tls = tuple(sorted(self.tls.items()))
             totals = self.acl_total, self.tls_total
-        self.model.put("refused_acl", acl)
-        self.model.put("refused_tls", tls)
-        self.model.put("refused_acl_total", totals[0])
-        self.model.put("refused_tls_total", totals[1])
+        self.model.put(REFUSED_ACL, acl)
+        self.model.put(REFUSED_TLS, tls)
+        self.model.put(REFUSED_ACL_TOTAL, totals[0])
+        self.model.put(REFUSED_TLS_TOTAL, totals[1])
 
 
 def _remember(table: OrderedDict[K, V], key: K, value: V) -> None:

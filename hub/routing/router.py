@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
 
 import zenoh
 
@@ -17,6 +16,15 @@ from fleetdaq.runtime.security import SecretFileError, hub_tls
 from fleetdaq.runtime.zenoh_session import router_config
 
 log = logging.getLogger("fleetdaq.hub")
+
+Declared = zenoh.Publisher | zenoh.Subscriber[None] | zenoh.Queryable[None]
+"""What a hub service declares on the router's session, and undeclares when it stops."""
+
+
+def undeclare(entity: Declared) -> None:
+    """Undeclare a publisher, subscriber or queryable (zenoh's stubs leave `undeclare`
+    unannotated, so mypy is told once, here)."""
+    entity.undeclare()  # type: ignore[no-untyped-call]
 
 
 class Router:
@@ -45,11 +53,11 @@ class Router:
         self.connect = connect or []
         self.partition = partition
         self.refused = refused
-        self._session: Any = None
+        self._session: zenoh.Session | None = None
         self._tap: RouterLogTap | None = None
 
     @property
-    def session(self) -> Any:
+    def session(self) -> zenoh.Session:
         if self._session is None:
             raise RouterError("the router is not running")
         return self._session

@@ -17,12 +17,11 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Any
 
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.periodic import Periodic
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import CERTIFICATES, ReadModel, number
 from fleetdaq.runtime.certificate_dates import (
     DAY_NS,
     HUB_AGAIN,
@@ -74,23 +73,23 @@ class CertificateWatch(Periodic):
     def tick(self) -> None:
         self.check()
 
-    def check(self, now_ns: int | None = None) -> dict[str, Any]:
+    def check(self, now_ns: int | None = None) -> dict[str, CertificateDates]:
         """Read both certificates, put them in the read model, warn of one that expires soon."""
         now_ns = time.time_ns() if now_ns is None else now_ns
         found = {which: read_certificate(path) for which, path in self.files.items()}
-        self.model.put("certificates", found)
-        ends = [c.get("not_after_ns", 0) for c in found.values()]
+        self.model.put(CERTIFICATES, {which: dict(cert) for which, cert in found.items()})
+        ends = [int(number(c, "not_after_ns") or 0) for c in found.values()]
         self.first_not_after_ns = min(ends) if all(ends) else 0
-        for which, cert in found.items():
+        for (which, cert), end in zip(found.items(), ends, strict=True):
             if "error" in cert:
                 self._tell(which, logging.ERROR, f"{cert['path']}: {cert['error']}", cert)
                 continue
-            days = (cert["not_after_ns"] - now_ns) / DAY_NS
+            days = (end - now_ns) / DAY_NS
             if days < self.warn_days:
                 what = (
                     "the site CA" if which == "ca" else f"this hub's certificate (CN {cert['cn']})"
                 )
-                when = when_it_ends(cert["not_after_ns"], now_ns)
+                when = when_it_ends(end, now_ns)
                 self._tell(
                     which,
                     logging.WARNING if days > 0 else logging.ERROR,

@@ -18,7 +18,7 @@ from pathlib import Path
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus, worth_telling, writable
 from fleetdaq.hub.nodes.event_delivery import EventDelivery
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import EVENT_COUNTS, RECENT_EVENTS, ReadModel
 
 log = logging.getLogger("fleetdaq.events")
 
@@ -109,8 +109,8 @@ class EventLog:
         log.log(e.level, "%s", line)
         self.recent.append(e)
         self.counts[e.level_name] = self.counts.get(e.level_name, 0) + 1
-        self.model.put("recent_events", tuple(self.recent))
-        self.model.put("event_counts", dict(self.counts))
+        self.model.put(RECENT_EVENTS, tuple(self.recent))
+        self.model.put(EVENT_COUNTS, dict(self.counts))
 
     def stop(self) -> None:
         self._sub.stop()

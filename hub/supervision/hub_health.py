@@ -14,7 +14,7 @@ from fleetdaq.contract.cdr import encode
 from fleetdaq.contract.keys import HUB
 from fleetdaq.contract.messages import NODE_HEALTH_TYPE, NodeHealth, TimeSyncStatus
 from fleetdaq.hub.periodic import Periodic
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import HUB_HEALTH, ReadModel
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.recording.session import health_topic
 from fleetdaq.hub.supervision.certificates import CertificateWatch
@@ -58,12 +58,12 @@ class HubHealth(Periodic):
         )
 
     def start(self) -> None:
-        self.model.put("hub_health", self.read())
+        self.model.put(HUB_HEALTH, self.read())
         self.start_ticking()
 
     def tick(self) -> None:
         health = self.read()
-        self.model.put("hub_health", health)
+        self.model.put(HUB_HEALTH, health)
         self.recorder.record(
             health_topic(HUB), encode(health), health.time_ns, health.time_ns, NODE_HEALTH_TYPE
         )

@@ -4,6 +4,7 @@ were asked (the hub's own are tested with the hub)."""
 
 from __future__ import annotations
 
+import dataclasses
 import http.client
 import json
 import ssl
@@ -27,6 +28,7 @@ from fleetdaq.hub.live.web.service import WebService
 from fleetdaq.hub.live.web.users import write_users
 from fleetdaq.hub.read_model import ReadModel
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
+from fleetdaq.hub.requests import ControlRequest
 from fleetdaq.ptp.quality import UNSYNCED
 from tests.procs import wait_until
 
@@ -69,6 +71,13 @@ class Recorded:
 
 
 class Outputs(Recorded):
+    """The outputs' handler: takes the request the page parsed (`ControlRequest`) and keeps
+    it as a dict."""
+
+    def act(self, request: ControlRequest) -> dict[str, Any]:
+        self.requests.append(dataclasses.asdict(request))
+        return self.answer
+
     def outputs(self) -> dict[str, Any]:
         return {}
 

@@ -75,6 +75,25 @@ def test_an_action_names_the_logged_in_user_and_their_address_whatever_the_body_
     assert web.commands.requests[0]["user"] == "alice"
 
 
+def test_an_output_request_reaches_the_hub_parsed_by_its_own_parser(make_web: MakeWeb):
+    web = make_web()
+    http = web.client()
+    http.login("alice")
+    status, answer = http.post(
+        "/api/outputs", {"action": "pulse", "output": "wec/valve", "value": 1}
+    )
+    assert (status, answer) == (
+        400, {"ok": False, "error": "a pulse lasts more than 0 s and at most 3600 s"}
+    )  # fmt: skip
+    assert web.commands.requests == [], "refused before the hub is asked"
+    body = {"action": "pulse", "output": "wec/valve", "value": 1, "pulse_s": 2, "reason": "purge"}
+    assert http.post("/api/outputs", body)[0] == 200
+    assert web.commands.requests == [
+        {"action": "pulse", "output": "wec/valve", "value": 1.0, "pulse_s": 2.0,
+         "reason": "purge", "user": "alice", "host": "127.0.0.1", "command_id": None}
+    ]  # fmt: skip
+
+
 def test_an_action_without_the_sessions_csrf_token_or_from_another_origin_is_refused(
     make_web: MakeWeb,
 ):

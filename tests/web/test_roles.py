@@ -22,7 +22,11 @@ MakeWeb = Callable[..., Web]
 
 ACTIONS = [
     *(("/api/alarms", a, {"names": ["substrate_hot"], "note": "checked"}) for a in ALARM_ACTIONS),
-    *(("/api/outputs", a, {"output": "wec/valve", "value": 1.0}) for a in OUTPUT_ACTIONS),
+    # A pulse says how long: the page parses a request with the hub's own parser.
+    *(
+        ("/api/outputs", a, {"output": "wec/valve", "value": 1.0, "pulse_s": 1.0})
+        for a in OUTPUT_ACTIONS
+    ),
     *(("/api/recorder", a, {}) for a in RECORDER_ACTIONS),
 ]
 

@@ -9,7 +9,6 @@ import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
@@ -52,35 +51,23 @@ class FoundDriver:
 
 def lookup(name: str, kind: Literal["stream", "output"]) -> tuple[Any, Callable[..., Any]]:
     """The schema and the factory (``create(cfg, clock, shared)``) of the `kind` driver that a
-    config's `driver: name` selects: a `fleetdaq.drivers` entry point of that name (a driver
-    package's plugin object: `kind`, `schema`, `driver`, `sim`, `shared`, as a row of the
-    driver table), else the built-in driver table.
+    config's `driver: name` selects, from the driver registry (`fleetdaq.contract.drivers`:
+    the `fleetdaq.drivers` entry points, built-in drivers and a driver package's alike).
 
-    The one place the suite looks a driver up: once a registry of entry points holds every
-    driver, built-in ones included, this becomes that registry's lookup.
+    Raises:
+        NotConforming: no such driver, or the registry refused it (the reason).
     """
+    from fleetdaq.contract.drivers import DriverKind, driver_registry
+    from fleetdaq.contract.errors import DriverError
     from fleetdaq.edge.drivers import table
 
-    for ep in entry_points(group=ENTRY_POINT_GROUP, name=name):
-        plugin = ep.load()
-        expect(plugin.kind == kind, f"{ep.value}: a {plugin.kind!r} driver, not {kind!r}")
-
-        def create(cfg: Any, clock: TimeSource, shared: SharedDevices, plugin: Any = plugin) -> Any:
-            sim = getattr(cfg, "sim", None) is not None and plugin.sim is not None
-            transport = table.load_sim(plugin.sim)(cfg, clock, shared) if sim else None
-            if kind == "output":
-                return plugin.driver(cfg, transport=transport, clock=clock, shared=shared)
-            if sim:
-                return plugin.driver(cfg, transport=transport, clock=clock)
-            if plugin.shared:
-                return plugin.driver(cfg, clock=clock, shared=shared)
-            return plugin.driver(cfg)
-
-        return plugin.schema, create
-    specs: Mapping[str, Any] = table.DRIVERS if kind == "stream" else table.OUTPUTS
-    if name not in specs:
-        raise NotConforming(f"no {kind} driver {name!r}: not built in, no entry point")
-    return specs[name].schema, table.create_driver if kind == "stream" else table.create_output
+    try:
+        plugin = driver_registry().plugin(
+            name, DriverKind.STREAM if kind == "stream" else DriverKind.OUTPUT
+        )
+    except DriverError as err:
+        raise NotConforming(f"{kind} driver {name!r}: {err}") from err
+    return plugin.schema, table.create_driver if kind == "stream" else table.create_output
 
 
 def find_driver(name: str) -> FoundDriver:

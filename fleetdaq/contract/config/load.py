@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import difflib
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+from typing import Annotated, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 
 from fleetdaq.contract.config.site import SiteConfig
 from fleetdaq.contract.drivers import DriverKind, driver_registry
@@ -68,7 +70,7 @@ def _duplicate_keys(root: yaml.Node) -> list[tuple[int, int, tuple[str | int, ..
     return sorted(found)
 
 
-def _load_yaml(text: str, source: str) -> Any:
+def _load_yaml(text: str, source: str) -> object:
     loader = _UniqueKeyLoader(text)
     try:
         root = loader.get_single_node()
@@ -152,7 +154,7 @@ def _model_at(loc: tuple[int | str, ...], schema: type[SiteConfig]) -> type[Base
     return model
 
 
-def _strip(annotation: Any) -> Any:
+def _strip(annotation: object) -> object:
     """`X | None` and `Annotated[X, ...]` -> X."""
     while True:
         if get_origin(annotation) is Annotated:
@@ -165,7 +167,7 @@ def _strip(annotation: Any) -> Any:
         return annotation
 
 
-def _models_in(annotation: Any) -> list[type[BaseModel]]:
+def _models_in(annotation: object) -> list[type[BaseModel]]:
     """The model classes inside an annotation (`X | None`, `list[X]`, `Annotated`, unions)."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return [annotation]
@@ -220,7 +222,7 @@ def _bad_name(loc: tuple[int | str, ...], name: object, pattern: object) -> str:
     return f"invalid {what} {name!r} (use {rule})"
 
 
-def _limit(kind: str, ctx: dict[str, Any], got: str) -> str | None:
+def _limit(kind: str, ctx: Mapping[str, object], got: str) -> str | None:
     """Bounds and lengths, said plainly: "must be greater than 0 (got -100)"."""
     bounds = {
         "greater_than": ("must be greater than", "gt"),
@@ -240,7 +242,7 @@ def _limit(kind: str, ctx: dict[str, Any], got: str) -> str | None:
     return None
 
 
-def _driver_problem(kind: str, loc: tuple[int | str, ...], ctx: dict[str, Any]) -> str | None:
+def _driver_problem(kind: str, loc: tuple[int | str, ...], ctx: Mapping[str, object]) -> str | None:
     """Why a driver a site names is not there, when its plugin was refused (failed to load, ...)."""
     registry = driver_registry()
     if kind == "union_tag_invalid":
@@ -250,10 +252,10 @@ def _driver_problem(kind: str, loc: tuple[int | str, ...], ctx: dict[str, Any]) 
     return None
 
 
-def _describe(err: dict[str, Any], schema: type[SiteConfig]) -> str:
+def _describe(err: ErrorDetails, schema: type[SiteConfig]) -> str:
     kind = str(err["type"])
     loc: tuple[int | str, ...] = tuple(err["loc"])
-    ctx: dict[str, Any] = err.get("ctx") or {}
+    ctx: Mapping[str, object] = err.get("ctx") or {}
     got = _short(err.get("input"))
     refused = _driver_problem(kind, loc, {**ctx, "input": err.get("input")})
     if refused is not None:
@@ -328,7 +330,7 @@ def parse_site(text: str, source: str, schema: type[Site]) -> Site:
         first = errors[0]
         more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
         where = _path(list(_user_loc(tuple(first["loc"]), schema)))
-        what = _describe(dict(first), schema)
+        what = _describe(first, schema)
         nested = _KEY_PATH.match(what)
         if nested:  # a check of a whole mapping names the key path below it
             below = nested.group(1)

@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Final
 
 from fleetdaq.contract.messages import HostMetrics, NodeHealth
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.live.foxglove.messages import HEADER, KEY_VALUES, iso, stamp
-from fleetdaq.hub.read_model import HubView, NodeView, StreamView
+from fleetdaq.hub.read_model import HubView, JsonObject, NodeView, StreamView, member, number
 
 OK: Final = 0
 WARN: Final = 1
@@ -103,7 +103,7 @@ class _Status:
     def value(self, key: str, value: object) -> None:
         self.values.append({"key": key, "value": str(value)})
 
-    def done(self) -> dict[str, Any]:
+    def done(self) -> JsonObject:
         return {
             "level": self.level,
             "name": self.name,
@@ -115,7 +115,7 @@ class _Status:
 
 def diagnostic_array(
     view: HubView, streams: dict[str, tuple[ConfiguredStream, ...]], now_ns: int
-) -> dict[str, Any]:
+) -> JsonObject:
     status = [node_status(view.node(n), n, cs, view, now_ns) for n, cs in streams.items()]
     status.append(hub_status(view, now_ns))
     status += [partition_hub_status(view, h, now_ns) for h in view.partition_hubs]
@@ -129,7 +129,7 @@ def node_status(
     streams: tuple[ConfiguredStream, ...],
     view: HubView,
     now_ns: int,
-) -> dict[str, Any]:
+) -> JsonObject:
     s = _Status(f"fleetdaq/{node}", node)
     alive = nv is not None and nv.alive
     health = nv.health if nv is not None else None
@@ -242,7 +242,7 @@ def _hub_machine(
     _host(s, h.host, "data")
 
 
-def hub_status(view: HubView, now_ns: int) -> dict[str, Any]:
+def hub_status(view: HubView, now_ns: int) -> JsonObject:
     s = _Status("fleetdaq/hub", "hub")
     h = view.hub_health
     _hub_machine(s, h, h.time_ns if h is not None else 0, now_ns, "no hub health yet", "hub health")
@@ -254,7 +254,7 @@ def hub_status(view: HubView, now_ns: int) -> dict[str, Any]:
     s.value("write errors", r.write_errors)
     s.value("refused traffic", view.refused_total)
     s.value("events not recorded", r.events_not_recorded)
-    dropped = sum(int(b.get("dropped", 0)) for b in view.bus)
+    dropped = sum(int(number(b, "dropped") or 0) for b in view.bus)
     s.value("event bus drops", dropped)
     if view.notifier:
         s.value("mails queued", view.notifier.get("queued", 0))
@@ -267,7 +267,7 @@ def hub_status(view: HubView, now_ns: int) -> dict[str, Any]:
     return s.done()
 
 
-def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> dict[str, Any]:
+def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> JsonObject:
     """A partition hub (``hub/<name>``): its machine, from its own health, and its recorder,
     from its report."""
     s = _Status(f"fleetdaq/{hub.node}", hub.node)
@@ -276,7 +276,7 @@ def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> dict[str,
     _hub_machine(
         s, hub.health, hub.health_received_ns, now_ns, "no health from it yet", "its health"
     )
-    r = (view.partitions.get(hub.node.removeprefix("hub/")) or {}).get("recorder") or {}
+    r = member(view.partitions.get(hub.node.removeprefix("hub/")) or {}, "recorder")
     s.value("recorder", r.get("state", "no report yet"))
     s.value("session", r.get("session") or "none")
     if r.get("state") in ("failed", "disk_error"):
@@ -286,7 +286,7 @@ def partition_hub_status(view: HubView, hub: NodeView, now_ns: int) -> dict[str,
     return s.done()
 
 
-def alarms_status(view: HubView) -> dict[str, Any]:
+def alarms_status(view: HubView) -> JsonObject:
     s = _Status("fleetdaq/alarms", "hub")
     in_alarm = [a for a in view.alarms if a.state in IN_ALARM]
     s.value("alarms", len(view.alarms))

@@ -16,14 +16,14 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
-from collections.abc import Sequence
-from typing import Any, Final
+from collections.abc import Mapping, Sequence
+from typing import Final
 
 import numpy as np
 
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.live.foxglove.decimate import Intervals
-from fleetdaq.hub.read_model import AlarmView
+from fleetdaq.hub.read_model import AlarmView, JsonObject
 from fleetdaq.hub.recording.session import topic_of
 
 STREAM_ENVELOPE: Final = ("min", "max")
@@ -65,7 +65,7 @@ def _number(x: float, key: str = "value") -> dict[str, float]:
     return {key: x} if math.isfinite(x) else {}
 
 
-def dumps(msg: dict[str, Any]) -> bytes:
+def dumps(msg: Mapping[str, object]) -> bytes:
     return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
 
 
@@ -107,7 +107,7 @@ class StreamMessages:
             for f, c, u in zip(fields, channels, units, strict=True)
         }
 
-        def envelope(which: str) -> dict[str, Any]:
+        def envelope(which: str) -> JsonObject:
             return {
                 "type": "object",
                 "description": f"the {which} of each channel over the interval",
@@ -117,7 +117,7 @@ class StreamMessages:
                 },
             }
 
-        self.schema: dict[str, Any] = {
+        self.schema: JsonObject = {
             "title": self.schema_name,
             "description": (
                 f"{node}/{stream} live, decimated on the hub: one message per "
@@ -200,7 +200,7 @@ EVENT_SCHEMA: Final = {
 }
 
 
-def event_message(e: Event, t_ns: int) -> dict[str, Any]:
+def event_message(e: Event, t_ns: int) -> JsonObject:
     """`t_ns`: the event's time, or the hub's when the event's cannot be true."""
     return {
         "header": {"stamp": stamp(t_ns), "frame_id": e.node},
@@ -231,7 +231,7 @@ LOG_SCHEMA: Final = {
 _LOG_LEVEL: Final = {10: 1, 20: 2, 30: 3, 40: 4, 50: 5}
 
 
-def log_message(e: Event, t_ns: int) -> dict[str, Any]:
+def log_message(e: Event, t_ns: int) -> JsonObject:
     """An event as a `foxglove.Log`: name node/source, the tag before the text."""
     return {
         "timestamp": stamp(t_ns),
@@ -286,7 +286,7 @@ ALARM_TABLE_SCHEMA: Final = {
 }
 
 
-def alarm_fields(a: AlarmView) -> dict[str, Any]:
+def alarm_fields(a: AlarmView) -> JsonObject:
     return {
         "name": a.name,
         "kind": a.kind,
@@ -306,9 +306,9 @@ def alarm_fields(a: AlarmView) -> dict[str, Any]:
     }
 
 
-def alarm_transition(e: Event, t_ns: int, view: AlarmView | None) -> dict[str, Any]:
+def alarm_transition(e: Event, t_ns: int, view: AlarmView | None) -> JsonObject:
     """An ``alarm_<transition>`` event, with what the read model knows of that alarm."""
-    out: dict[str, Any] = {"name": e.get("alarm") or ""}
+    out: JsonObject = {"name": e.get("alarm") or ""}
     if view is not None:
         out.update(alarm_fields(view))
     value = e.get("value")
@@ -329,7 +329,7 @@ def alarm_transition(e: Event, t_ns: int, view: AlarmView | None) -> dict[str, A
     return out
 
 
-def alarm_table(alarms: Sequence[AlarmView], now_ns: int, in_alarm: int) -> dict[str, Any]:
+def alarm_table(alarms: Sequence[AlarmView], now_ns: int, in_alarm: int) -> JsonObject:
     return {
         "header": {"stamp": stamp(now_ns), "frame_id": "hub"},
         "in_alarm": in_alarm,

@@ -26,9 +26,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final, cast
+from typing import TYPE_CHECKING, Final, cast
 
 from fleetdaq.contract.messages import Event
 from fleetdaq.contract.wire import batch_values, plausible_time
@@ -58,7 +58,7 @@ from fleetdaq.runtime.threads import NamedThread
 
 if TYPE_CHECKING:  # imported when the service starts: only a hub that uses it needs the SDK
     from foxglove import Channel, Context
-    from foxglove.websocket import ServerListener, WebSocketServer
+    from foxglove.websocket import ChannelView, Client, ServerListener, WebSocketServer
 
 log = logging.getLogger("fleetdaq.foxglove")
 
@@ -356,21 +356,21 @@ class _Listener:
     def __init__(self, live: FoxgloveLive) -> None:
         self.live = live
 
-    def on_subscribe(self, client: Any, channel: Any) -> None:
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         self.live._subscribed(+1, str(channel.topic))
         log.debug("Foxglove client %s subscribed to %s", client.id, channel.topic)
 
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         self.live._subscribed(-1, str(channel.topic))
         log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
 
 
-def _channel(context: Context, topic: str, schema: dict[str, Any]) -> Channel:
+def _channel(context: Context, topic: str, schema: Mapping[str, object]) -> Channel:
     from foxglove import Channel, Schema
 
     return Channel(
         topic,
-        schema=Schema(name=schema["title"], encoding="jsonschema", data=dumps(schema)),
+        schema=Schema(name=str(schema["title"]), encoding="jsonschema", data=dumps(schema)),
         message_encoding="json",
         context=context,
     )

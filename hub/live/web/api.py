@@ -7,9 +7,12 @@ Reading (open to anyone who reaches the address when `open_view`, else after a l
 Acting (a login with the ``control`` role, this session's CSRF token in ``X-CSRF-Token``, an
 Origin that is this page's, a JSON body; a ``view`` login is refused, 403):
 ``POST /api/alarms`` (ack, shelve, unshelve), ``/api/outputs`` (set, pulse, arm, disarm),
-``/api/recorder`` (start, stop, split, snapshot). Each goes to the same ``handle`` the
-command line's request reaches, with ``user`` and ``host`` always replaced by the logged-in
-user and the client's address, so every action's audit names who did it. The handlers block
+``/api/recorder`` (start, stop, split, snapshot). Each goes the command line's way, with
+``user`` and ``host`` always replaced by the logged-in user and the client's address, so every
+action's audit names who did it: alarms and recorder to the same ``handle`` the command line's
+request reaches; outputs parsed by the command line's own parser
+(`fleetdaq.hub.requests.parse_control_request`), the `ControlRequest` handed to
+`CommandService.act`. The handlers block
 (an edge being asked, the journal fsynced): they run on a worker pool, never on the loop.
 
 Bad input is answered 400 with one line saying what is wrong (401 without a login, 403 for a
@@ -25,12 +28,13 @@ import json
 import logging
 import math
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Final, TypeVar, TypeVarTuple
 
 from aiohttp import web
+from aiohttp.typedefs import Middleware
 
 from fleetdaq.hub.config.dashboard import DashboardConfig
 from fleetdaq.hub.live.metrics import render_metrics
@@ -38,15 +42,30 @@ from fleetdaq.hub.live.web.auth import COOKIE, CSRF_HEADER, Auth, Session, csrf_
 from fleetdaq.hub.live.web.events import LEVELS, EventFilter, EventTail
 from fleetdaq.hub.live.web.parts import HubParts
 from fleetdaq.hub.live.web.stats import WebStats
-from fleetdaq.hub.read_model import to_jsonable
+from fleetdaq.hub.read_model import JsonObject, to_jsonable
+from fleetdaq.hub.requests import (
+    AlarmAction,
+    BadRequest,
+    ControlAction,
+    RecorderAction,
+    parse_control_request,
+)
 
 log = logging.getLogger("fleetdaq.dashboard")
 
 MAX_BODY = 64 * 1024
 STATIC = Path(__file__).resolve().parent / "static"
-ALARM_ACTIONS = ("ack", "shelve", "unshelve")
-OUTPUT_ACTIONS = ("set", "pulse", "arm", "disarm")
-RECORDER_ACTIONS = ("start", "stop", "split", "snapshot")
+ALARM_ACTIONS: Final = (AlarmAction.ACK, AlarmAction.SHELVE, AlarmAction.UNSHELVE)
+OUTPUT_ACTIONS: Final = (
+    ControlAction.SET,
+    ControlAction.PULSE,
+    ControlAction.ARM,
+    ControlAction.DISARM,
+)
+RECORDER_ACTIONS: Final = (
+    RecorderAction.START, RecorderAction.STOP, RecorderAction.SPLIT, RecorderAction.SNAPSHOT,
+)  # fmt: skip
+"""What the page may do (the command line may do more: list, read, disable, enable...)."""
 
 SECURITY_HEADERS = {
     "Content-Security-Policy": (
@@ -59,6 +78,8 @@ SECURITY_HEADERS = {
 }
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+R = TypeVar("R")
+Ts = TypeVarTuple("Ts")
 
 
 def fail(status: int, message: str, **headers: str) -> web.HTTPException:
@@ -160,7 +181,7 @@ class Api:
             )
         return s
 
-    async def body(self, request: web.Request, allowed: tuple[str, ...]) -> dict[str, Any]:
+    async def body(self, request: web.Request, allowed: tuple[str, ...]) -> JsonObject:
         if request.content_type != "application/json":
             raise fail(415, "send the request as application/json")
         raw = await request.read()  # at most client_max_size, else 413
@@ -170,12 +191,13 @@ class Api:
             raise fail(400, "the body is not JSON") from None
         if not isinstance(req, dict):
             raise fail(400, "the body is not a JSON object")
+        body: JsonObject = req
         unknown = sorted(set(map(str, req)) - set(allowed))
         if unknown:
             raise fail(400, f"unknown field(s): {', '.join(unknown)}")
-        return req
+        return body
 
-    async def blocking(self, fn: Callable[..., Any], *args: Any) -> Any:
+    async def blocking(self, fn: Callable[[*Ts], R], *args: *Ts) -> R:
         return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
 
     # --- page and login ---------------------------------------------------------------------------
@@ -321,48 +343,48 @@ class Api:
     # --- acting -----------------------------------------------------------------------------------
 
     async def _act(
-        self,
-        request: web.Request,
-        handler: Callable[[bytes], dict[str, Any]],
-        allowed: tuple[str, ...],
-        actions: tuple[str, ...],
-    ) -> web.Response:
+        self, request: web.Request, allowed: tuple[str, ...], actions: tuple[str, ...]
+    ) -> JsonObject:
+        """The body of an action by the logged-in control user: one of `actions`, its user and
+        host those of the login and the client, whatever the body said (the audit names them)."""
         s = self.controller(request)
         req = await self.body(request, allowed)
         action = req.get("action")
         if action not in actions:
             raise fail(400, f"action must be one of {', '.join(actions)}")
-        # Whatever the body said: the audit names the logged-in user and where they are.
         req["user"] = s.user
         req["host"] = client_address(request)
         self.stats.actions += 1
-        answer: dict[str, Any] = await self.blocking(handler, json.dumps(req).encode())
+        return req
+
+    @staticmethod
+    def _answered(answer: Mapping[str, object]) -> web.Response:
+        """The handler's answer: 400 when it says what was wrong, else 200."""
         status = 400 if answer.get("error") else 200
         return web.json_response(to_jsonable(answer), status=status)
 
     async def alarms(self, request: web.Request) -> web.Response:
-        return await self._act(
-            request,
-            self.parts.alarm_requests.handle,
-            ("action", "names", "all", "for_s", "note"),
-            ALARM_ACTIONS,
-        )
+        req = await self._act(request, ("action", "names", "all", "for_s", "note"), ALARM_ACTIONS)
+        handle = self.parts.alarm_requests.handle
+        return self._answered(await self.blocking(handle, json.dumps(req).encode()))
 
     async def output_action(self, request: web.Request) -> web.Response:
-        return await self._act(
-            request,
-            self.parts.commands.handle,
-            ("action", "output", "value", "pulse_s", "reason"),
-            OUTPUT_ACTIONS,
+        req = await self._act(
+            request, ("action", "output", "value", "pulse_s", "reason"), OUTPUT_ACTIONS
         )
+        try:  # the command line's parser: the same checks, the same refusals
+            parsed = parse_control_request(req)
+        except BadRequest as err:
+            return self._answered({"ok": False, "error": str(err)})
+        return self._answered(await self.blocking(self.parts.commands.act, parsed))
 
     async def recorder(self, request: web.Request) -> web.Response:
-        return await self._act(
-            request, self.parts.recorder_requests.handle, ("action", "note"), RECORDER_ACTIONS
-        )
+        req = await self._act(request, ("action", "note"), RECORDER_ACTIONS)
+        handle = self.parts.recorder_requests.handle
+        return self._answered(await self.blocking(handle, json.dumps(req).encode()))
 
 
-def middlewares(stats: WebStats) -> list[Any]:
+def middlewares(stats: WebStats) -> list[Middleware]:
     """Counting, JSON errors for the API, security headers on every answer."""
 
     @web.middleware

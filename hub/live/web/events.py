@@ -8,7 +8,7 @@ import logging
 import threading
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TypedDict
 
 from fleetdaq.contract.messages import Event
 from fleetdaq.hub.bus import EventBus
@@ -22,6 +22,20 @@ LEVELS = {
 }
 
 
+class EventJson(TypedDict):
+    """One event as the page gets it: the bus's `Event`, numbered in arrival order."""
+
+    seq: int
+    time_ns: int
+    node: str
+    level: int
+    level_name: str
+    source: str
+    tag: str
+    message: str
+    fields: dict[str, str]
+
+
 @dataclass(frozen=True, slots=True)
 class EventFilter:
     min_level: int = 0
@@ -30,7 +44,7 @@ class EventFilter:
     text: str = ""
     """Case-insensitive, in the message or the tag."""
 
-    def matches(self, e: dict[str, Any]) -> bool:
+    def matches(self, e: EventJson) -> bool:
         if e["level"] < self.min_level:
             return False
         if self.node and e["node"] != self.node:
@@ -43,7 +57,7 @@ class EventFilter:
         return True
 
 
-def event_json(seq: int, e: Event) -> dict[str, Any]:
+def event_json(seq: int, e: Event) -> EventJson:
     return {
         "seq": seq,
         "time_ns": e.time_ns,
@@ -61,7 +75,7 @@ class EventTail:
     """Subscribed to the bus at construction (so it sees the hub's first events)."""
 
     def __init__(self, bus: EventBus, keep: int = 2000) -> None:
-        self._events: deque[dict[str, Any]] = deque(maxlen=keep)
+        self._events: deque[EventJson] = deque(maxlen=keep)
         self._lock = threading.Lock()
         self._seq = 0
         self._sub = bus.subscribe("dashboard", self._on_event)
@@ -75,9 +89,9 @@ class EventTail:
     def last_seq(self) -> int:
         return self._seq
 
-    def since(self, seq: int, limit: int = 1000) -> list[dict[str, Any]]:
+    def since(self, seq: int, limit: int = 1000) -> list[EventJson]:
         """Events after `seq`, oldest first, at most the last `limit` of them."""
-        new: list[dict[str, Any]] = []
+        new: list[EventJson] = []
         with self._lock:
             for e in reversed(self._events):
                 if e["seq"] <= seq or len(new) >= limit:
@@ -86,7 +100,7 @@ class EventTail:
         new.reverse()
         return new
 
-    def query(self, f: EventFilter, limit: int = 200) -> list[dict[str, Any]]:
+    def query(self, f: EventFilter, limit: int = 200) -> list[EventJson]:
         """The last `limit` events that pass `f`, oldest first."""
         with self._lock:
             events = list(self._events)

@@ -26,9 +26,10 @@ import numpy.typing as npt
 import orjson
 
 from fleetdaq.hub.live.plots import Columns
+from fleetdaq.hub.read_model import JsonObject
 
 
-def pack_columns(c: Columns) -> tuple[dict[str, Any], bytes]:
+def pack_columns(c: Columns) -> tuple[JsonObject, bytes]:
     """A followed plot's frame (whole or delta) -> (the header's fields, the float32 columns:
     per channel minima then maxima)."""
     header = {
@@ -46,18 +47,18 @@ def pack_columns(c: Columns) -> tuple[dict[str, Any], bytes]:
     return header, c.minmax.astype("<f4", copy=False).tobytes()
 
 
-def message(plot_id: str, header: dict[str, Any], data: bytes) -> bytes:
+def message(plot_id: str, header: JsonObject, data: bytes) -> bytes:
     """One client's frame message (its own plot id, the shared columns)."""
     text = orjson.dumps({"type": "frame", "id": plot_id, **header})
     text += b" " * (-(4 + len(text)) % 4)
     return struct.pack("<I", len(text)) + text + data
 
 
-def unpack(msg: bytes) -> dict[str, Any]:
+def unpack(msg: bytes) -> JsonObject:
     """The inverse of `message` (for tests and tools): header fields plus ``min``/``max``
     lists per channel (its ``count`` columns), NaN where no sample fell."""
     (n,) = struct.unpack_from("<I", msg)
-    header: dict[str, Any] = json.loads(msg[4 : 4 + n])
+    header: dict[str, Any] = json.loads(msg[4 : 4 + n])  # a tool's look at our own message
     values = np.frombuffer(msg, dtype="<f4", offset=4 + n)
     count = header["newest_col"] - header["first_col"] + 1
     header["count"] = count

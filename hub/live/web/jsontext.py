@@ -5,19 +5,17 @@ live state goes to every browser once a second: this was most of its cost."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import orjson
 
 _OPTIONS = orjson.OPT_NON_STR_KEYS | orjson.OPT_SERIALIZE_NUMPY
 
 
-def _default(value: Any) -> Any:
+def _default(value: object) -> str:
     if isinstance(value, bytes | bytearray | memoryview):
         return bytes(value).hex()
     raise TypeError(f"not JSON: {type(value).__name__}")
 
 
-def dumps(value: Any) -> str:
+def dumps(value: object) -> str:
     """`value` as compact JSON text."""
     return orjson.dumps(value, default=_default, option=_OPTIONS).decode()

@@ -38,19 +38,20 @@ import logging
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from fleetdaq.hub.bus import worth_telling
 from fleetdaq.hub.config.dashboard import DashboardConfig
-from fleetdaq.hub.live.plots import PlotFollower
+from fleetdaq.hub.live.plots import PlotFollower, StreamInfo
 from fleetdaq.hub.live.web import frames, jsontext
 from fleetdaq.hub.live.web.api import Api, client_address, fail
-from fleetdaq.hub.live.web.events import EventTail
+from fleetdaq.hub.live.web.events import EventJson, EventTail
 from fleetdaq.hub.live.web.parts import HubParts
 from fleetdaq.hub.live.web.stats import WebStats
+from fleetdaq.hub.read_model import JsonObject
 
 log = logging.getLogger("fleetdaq.dashboard")
 
@@ -101,7 +102,7 @@ class Client:
     frames: dict[str, str | bytes] = field(default_factory=dict)
     frame_versions: dict[str, int] = field(default_factory=dict)
     """Per plot id, the follower's version a pending frame brings the client to."""
-    events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=PENDING_EVENTS))
+    events: deque[EventJson] = field(default_factory=lambda: deque(maxlen=PENDING_EVENTS))
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     dropped: int = 0
     bad: int = 0
@@ -135,7 +136,7 @@ class Client:
         self.frame_versions = {}
         self.frames = {k: v for k, v in self.frames.items() if k == ERROR_SLOT}
 
-    def offer_events(self, events: list[dict[str, Any]]) -> None:
+    def offer_events(self, events: list[EventJson]) -> None:
         overflow = len(self.events) + len(events) - PENDING_EVENTS
         if overflow > 0:
             self._drop(overflow)
@@ -157,7 +158,7 @@ class Client:
         return out
 
 
-def parse_plots(msg: Any, streams: dict[str, dict[str, Any]], window_s: float) -> list[PlotRequest]:
+def parse_plots(msg: object, streams: dict[str, StreamInfo], window_s: float) -> list[PlotRequest]:
     """A client's ``plots`` message, checked against the site's streams; ValueError says why."""
     if not isinstance(msg, dict) or msg.get("type") != "plots":
         raise ValueError('expected {"type": "plots", "plots": [...]}')
@@ -374,7 +375,7 @@ class Live:
 
     # --- the tickers ------------------------------------------------------------------------------
 
-    async def _every(self, period: float, tick: Any, cpu: str) -> None:
+    async def _every(self, period: float, tick: Callable[[], None], cpu: str) -> None:
         loop = asyncio.get_running_loop()
         next_at = loop.time()
         while True:
@@ -390,7 +391,7 @@ class Live:
             self._new_data.clear()
             self._run(self._frame_tick, "frames_cpu_s")
 
-    def _run(self, tick: Any, cpu: str) -> None:
+    def _run(self, tick: Callable[[], None], cpu: str) -> None:
         t0 = time.thread_time()
         try:
             tick()
@@ -493,5 +494,5 @@ class _Followed:
     packed of it is shared by every client that holds the same version."""
 
     follower: PlotFollower
-    packed: dict[int, tuple[dict[str, Any], bytes]] = field(default_factory=dict)
+    packed: dict[int, tuple[JsonObject, bytes]] = field(default_factory=dict)
     messages: dict[tuple[str, int], bytes] = field(default_factory=dict)

@@ -4,7 +4,8 @@ is refused with a clear answer and counted, never a crash)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
+
+from fleetdaq.hub.read_model import JsonObject
 
 
 @dataclass(slots=True)
@@ -45,5 +46,5 @@ class WebStats:
     """All the CPU seconds of the dashboard's thread so far (as of the last state tick): the
     parts above plus HTTP, WebSocket reads and the event loop itself."""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JsonObject:
         return asdict(self)

@@ -16,9 +16,10 @@ import logging
 import os
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TextIO
 
 from fleetdaq.hub.bus import worth_telling
+from fleetdaq.hub.read_model import JsonObject
 
 log = logging.getLogger("fleetdaq.alarms")
 
@@ -28,16 +29,16 @@ class Journal:
         self.path = path
         self.max_bytes = max_bytes
         self._lock = threading.Lock()
-        self._fh: Any = None
+        self._fh: TextIO | None = None
         self._dirty = False
         self.torn_lines = 0
         self.write_errors = 0
         self.last_error = ""
         self._opened = False
 
-    def load(self) -> dict[str, dict[str, Any]]:
+    def load(self) -> dict[str, JsonObject]:
         """The last record of every alarm in the journal (empty if there is none yet)."""
-        last: dict[str, dict[str, Any]] = {}
+        last: dict[str, JsonObject] = {}
         try:
             with self.path.open("r", encoding="utf-8") as fh:
                 for line in fh:
@@ -59,7 +60,7 @@ class Journal:
         self._fh = self.path.open("a", encoding="utf-8")
         self._opened = True
 
-    def append(self, record: dict[str, Any], sync: bool = False) -> bool:
+    def append(self, record: JsonObject, sync: bool = False) -> bool:
         """Add a line; `sync`: fsync before returning (operator actions). False when the disk
         refused it (counted in `write_errors`; alarms go on in memory)."""
         try:
@@ -108,8 +109,9 @@ class Journal:
         self.last_error = str(err)
         if worth_telling(self.write_errors):
             log.error("alarm journal %s: %s (%d so far)", self.path, err, self.write_errors)
-        with contextlib.suppress(OSError):
-            self._fh.close()
+        if self._fh is not None:
+            with contextlib.suppress(OSError):
+                self._fh.close()
         try:
             self._fh = self.path.open("a", encoding="utf-8")
         except OSError:
@@ -136,3 +138,17 @@ class Journal:
                 except OSError as err:
                     log.error("closing the alarm journal: %s", err)
                 self._fh = None
+
+
+def as_int(value: object) -> int:
+    """`int(value)` of a field of a journal's line (TypeError for what `int` does not take)."""
+    if isinstance(value, int | float | str):
+        return int(value)
+    raise TypeError(f"not a number: {value!r}")
+
+
+def as_float(value: object) -> float:
+    """`float(value)` of a field of a journal's line (TypeError for what `float` does not take)."""
+    if isinstance(value, int | float | str):
+        return float(value)
+    raise TypeError(f"not a number: {value!r}")

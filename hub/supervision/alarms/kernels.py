@@ -26,14 +26,16 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from fleetdaq.hub.jit import Compiled
+from fleetdaq.hub.jit import Compiled, Njit
 
-Extremes = tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]
+Floats = npt.NDArray[np.float64]
+Flags = npt.NDArray[np.bool_]
+Indices = npt.NDArray[np.intp]
+Extremes = tuple[Floats, Floats, Flags]
 
 
 def batch_extremes(values: npt.NDArray[np.float64]) -> Extremes:
@@ -74,7 +76,7 @@ def kernel_error() -> str:
     return _compiled.error
 
 
-def _compile(jit: Any) -> tuple[Callable[..., int], Callable[..., None]]:
+def _compile(jit: Njit) -> tuple[Callable[..., int], Callable[..., None]]:
     extremes: Callable[..., None] = jit(_one_pass)
     flips: Callable[..., int] = jit(_flips)
     # Compiled now for every kind of array they are given (a float64 payload's read-only
@@ -106,7 +108,7 @@ _compiled = Compiled(
 _CHECKS = {"fault": 0, "above": 1, "below": 2}
 
 
-def raw_flips(x: Any, check: str, threshold: float, clear_at: float, raw: bool) -> list[int]:
+def raw_flips(x: Floats, check: str, threshold: float, clear_at: float, raw: bool) -> list[int]:
     """The samples of one channel `x` where a condition's raw state changes, starting from
     `raw`: "above"/"below" `threshold` (back to the other side past `clear_at`, the deadband),
     or "fault" (invalid). A sample inside the deadband, or NaN for a limit, changes nothing.
@@ -122,7 +124,7 @@ def raw_flips(x: Any, check: str, threshold: float, clear_at: float, raw: bool) 
     return out[:n].tolist()  # type: ignore[no-any-return]
 
 
-def numpy_flips(x: Any, check: str, threshold: float, clear_at: float, raw: bool) -> list[int]:
+def numpy_flips(x: Floats, check: str, threshold: float, clear_at: float, raw: bool) -> list[int]:
     if check == "fault":
         on = np.isnan(x)
         off = ~on
@@ -141,7 +143,9 @@ def numpy_flips(x: Any, check: str, threshold: float, clear_at: float, raw: bool
     return decisive[sign != prev].tolist()  # type: ignore[no-any-return]
 
 
-def _flips(x: Any, check: int, threshold: float, clear_at: float, raw: bool, out: Any) -> int:
+def _flips(
+    x: Floats, check: int, threshold: float, clear_at: float, raw: bool, out: Indices
+) -> int:
     """`raw_flips`' loop (compiled): one pass, the indices into `out`, how many returned."""
     n = 0
     state = raw
@@ -163,7 +167,7 @@ def _flips(x: Any, check: int, threshold: float, clear_at: float, raw: bool, out
     return n
 
 
-def _one_pass(x: Any, lo: Any, hi: Any, bad: Any) -> None:  # pragma: no cover (compiled)
+def _one_pass(x: Floats, lo: Floats, hi: Floats, bad: Flags) -> None:  # pragma: no cover (compiled)
     """The loop numba compiles: eight channels at a time (then four, then one by one), their
     running extremes in registers, so each row of a T8 batch is read once from memory (28 µs
     from memory for 4000 x 8; four at a time 34 µs, over arrays of running extremes twice

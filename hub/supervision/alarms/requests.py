@@ -13,20 +13,21 @@ from __future__ import annotations
 
 import fnmatch
 import logging
-from typing import Any
+from typing import Final, TypedDict
 
 from fleetdaq.contract.config.security import SecurityConfig
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.requester_text import text_problem
-from fleetdaq.hub.read_model import to_jsonable
+from fleetdaq.hub.read_model import JsonObject, to_jsonable
 from fleetdaq.hub.requests import (
     MAX_HOST_CHARS,
     MAX_USER_CHARS,
+    AlarmAction,
     BadRequest,
     Caller,
     RequestService,
-    as_caller,
     parse_object,
+    refusal,
     text,
 )
 from fleetdaq.hub.routing.router import Router
@@ -35,19 +36,34 @@ from fleetdaq.hub.supervision.alarms.supervisor import Supervisor
 
 log = logging.getLogger("fleetdaq.alarms")
 
-ACTIONS = ("list", "ack", "shelve", "unshelve", "disable", "enable")
+ACTIONS: Final = tuple(AlarmAction)
+_ACTIONS: Final = frozenset(a.value for a in AlarmAction)
 MAX_SHELVE_S = 30 * 24 * 3600.0
 MAX_NAME_CHARS = 200
 
 
-def parse_request(raw: bytes) -> dict[str, Any]:
+class AlarmRequest(TypedDict):
+    """A request on ``hub/alarms``, checked in full (`parse_request`)."""
+
+    action: AlarmAction
+    names: list[str]
+    all: bool
+    for_s: float
+    note: str
+    user: str
+    host: str
+
+
+def parse_request(raw: bytes) -> AlarmRequest:
     req = parse_object(raw, ("action", "names", "all", "for_s", "note", "user", "host"))
-    action = req.get("action", "list")
-    if action not in ACTIONS:
-        raise BadRequest(f"unknown action {action!r} (one of {', '.join(ACTIONS)})")
+    asked = req.get("action", AlarmAction.LIST)
+    if not isinstance(asked, str) or asked not in _ACTIONS:
+        raise BadRequest(f"unknown action {asked!r} (one of {', '.join(ACTIONS)})")
+    action = AlarmAction(asked)
     names = req.get("names", [])
     if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
         raise BadRequest("names must be a list of alarm names or patterns")
+    names = [str(n) for n in names]
     if len(names) > 1000:
         raise BadRequest("at most 1000 names")
     for i, name in enumerate(names):
@@ -60,9 +76,9 @@ def parse_request(raw: bytes) -> dict[str, Any]:
     for_s = req.get("for_s", 0.0)
     if isinstance(for_s, bool) or not isinstance(for_s, int | float):
         raise BadRequest("for_s must be a number of seconds")
-    if action == "shelve" and not 0 < for_s <= MAX_SHELVE_S:
+    if action is AlarmAction.SHELVE and not 0 < for_s <= MAX_SHELVE_S:
         raise BadRequest(f"a shelve lasts more than 0 s and at most {MAX_SHELVE_S:g} s")
-    if action != "list" and not names and not req.get("all"):
+    if action is not AlarmAction.LIST and not names and not req.get("all"):
         raise BadRequest("name the alarm(s), or ask for all")
     return {
         "action": action,
@@ -90,19 +106,21 @@ class AlarmRequests(RequestService):
         super().__init__(router, keys.hub("alarms"), workers=1, security=security)
         self.supervisor = supervisor
 
-    def handle(self, raw: bytes, caller: Caller | None = None) -> dict[str, Any]:
+    def handle(self, raw: bytes, caller: Caller | None = None) -> JsonObject:
         try:
             req = parse_request(raw)
-            refused = as_caller(req, caller, req["action"], ("list",))
-            if refused:
-                raise BadRequest(refused)
+            if caller is not None:
+                req["user"] = caller.name
+                why = refusal(caller, req["action"], (AlarmAction.LIST,))
+                if why:
+                    raise BadRequest(why)
         except BadRequest as err:
             return {"ok": False, "error": str(err), "results": [], "alarms": []}
         sup = self.supervisor
         names = self._resolve(req)
-        results: list[dict[str, Any]] = []
+        results: list[JsonObject] = []
         ok = True
-        if req["action"] != "list":
+        if req["action"] is not AlarmAction.LIST:
             if not names:
                 return {
                     "ok": False,
@@ -117,21 +135,21 @@ class AlarmRequests(RequestService):
                 ok = ok and done
         return {"ok": ok, "error": "", "results": results, "alarms": self._alarms()}
 
-    def _resolve(self, req: dict[str, Any]) -> list[str]:
+    def _resolve(self, req: AlarmRequest) -> list[str]:
         sup = self.supervisor
         if req["all"]:
-            if req["action"] == "ack":
+            if req["action"] is AlarmAction.ACK:
                 return [n for n, a in sup.alarms.items() if a.status.state in UNACKED]
-            if req["action"] == "unshelve":
+            if req["action"] is AlarmAction.UNSHELVE:
                 return [n for n, a in sup.alarms.items() if a.status.state is State.SHELVED]
             return list(sup.alarms)
         # A pattern takes the alarms it matches that the action applies to (acking
         # "node_down/*" acks the unacked ones and says nothing of the others); a plain name is
         # taken as given, so a refusal names its reason.
         wanted: set[State] | None = {
-            "ack": set(UNACKED),
-            "unshelve": {State.SHELVED},
-            "enable": {State.DISABLED},
+            AlarmAction.ACK: set(UNACKED),
+            AlarmAction.UNSHELVE: {State.SHELVED},
+            AlarmAction.ENABLE: {State.DISABLED},
         }.get(req["action"])
         out: list[str] = []
         for pattern in req["names"]:
@@ -148,8 +166,8 @@ class AlarmRequests(RequestService):
                     out.append(n)
         return out
 
-    def _alarms(self) -> list[Any]:
+    def _alarms(self) -> object:
+        """Every alarm's view, JSON-ready."""
         with self.supervisor.lock:
             views = [a.view() for a in self.supervisor.alarms.values()]
-        out: list[Any] = to_jsonable(views)
-        return out
+        return to_jsonable(views)

@@ -15,16 +15,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 
 
-class State(Enum):
+class State(StrEnum):
     NORMAL = "normal"
     ACTIVE_UNACKED = "active_unacked"
     ACTIVE_ACKED = "active_acked"
     RETURNED_UNACKED = "returned_unacked"
     SHELVED = "shelved"
     DISABLED = "disabled"
+
+
+class Transition(StrEnum):
+    """What happened to an alarm (the ``alarm_<transition>`` event's tag, the journal's and the
+    recording's ``transition``)."""
+
+    RAISED = "raised"
+    CLEARED = "cleared"
+    ACKED = "acked"
+    SHELVED = "shelved"
+    UNSHELVED = "unshelved"
+    SHELVE_EXPIRED = "shelve_expired"
+    DISABLED = "disabled"
+    ENABLED = "enabled"
 
 
 IN_ALARM = {State.ACTIVE_UNACKED, State.ACTIVE_ACKED, State.RETURNED_UNACKED}
@@ -35,9 +49,7 @@ UNACKED = {State.ACTIVE_UNACKED, State.RETURNED_UNACKED}
 class Change:
     """A transition: what happened, the state it led to, who did it."""
 
-    transition: str
-    """"raised", "cleared", "acked", "shelved", "unshelved", "shelve_expired", "disabled",
-    "enabled"."""
+    transition: Transition
     state: State
     time_ns: int
     value: float = math.nan
@@ -63,7 +75,7 @@ class AlarmStatus:
     value: float = math.nan
     shelved_until_ns: int = 0
 
-    def _to(self, state: State, transition: str, t: int, **who: str) -> Change:
+    def _to(self, state: State, transition: Transition, t: int, **who: str) -> Change:
         self.state = state
         self.since_ns = t
         return Change(transition, state, t, self.value, **who)
@@ -81,12 +93,14 @@ class AlarmStatus:
         if active:
             if self.state in (State.NORMAL, State.RETURNED_UNACKED):
                 self.count += 1
-                return self._to(State.ACTIVE_UNACKED, "raised", t)
+                return self._to(State.ACTIVE_UNACKED, Transition.RAISED, t)
             return None
         if self.state is State.ACTIVE_ACKED:
-            return self._to(State.NORMAL, "cleared", t)
+            return self._to(State.NORMAL, Transition.CLEARED, t)
         if self.state is State.ACTIVE_UNACKED:
-            return self._to(State.RETURNED_UNACKED if self.latch else State.NORMAL, "cleared", t)
+            return self._to(
+                State.RETURNED_UNACKED if self.latch else State.NORMAL, Transition.CLEARED, t
+            )
         return None
 
     # --- operators ---------------------------------------------------------------------------
@@ -94,9 +108,9 @@ class AlarmStatus:
     def ack(self, t: int, user: str, host: str, note: str = "") -> Change:
         who = {"user": user, "host": host, "note": note}
         if self.state is State.ACTIVE_UNACKED:
-            return self._to(State.ACTIVE_ACKED, "acked", t, **who)
+            return self._to(State.ACTIVE_ACKED, Transition.ACKED, t, **who)
         if self.state is State.RETURNED_UNACKED:
-            return self._to(State.NORMAL, "acked", t, **who)
+            return self._to(State.NORMAL, Transition.ACKED, t, **who)
         if self.state is State.ACTIVE_ACKED:
             raise Refused("already acked")
         raise Refused(f"nothing to ack: it is {self.state.value}")
@@ -107,31 +121,33 @@ class AlarmStatus:
         if until_ns <= t:
             raise Refused("a shelve needs an expiry in the future")
         self.shelved_until_ns = until_ns
-        return self._to(State.SHELVED, "shelved", t, user=user, host=host, note=note)
+        return self._to(State.SHELVED, Transition.SHELVED, t, user=user, host=host, note=note)
 
     def unshelve(self, t: int, user: str = "", host: str = "", note: str = "") -> Change:
         if self.state is not State.SHELVED:
             raise Refused(f"it is not shelved (it is {self.state.value})")
-        return self._back(t, "unshelved" if user else "shelve_expired", user, host, note)
+        return self._back(
+            t, Transition.UNSHELVED if user else Transition.SHELVE_EXPIRED, user, host, note
+        )
 
     def expire(self, t: int) -> Change | None:
         """The shelve's expiry passed at `t`: back to its real state."""
         if self.state is State.SHELVED and t >= self.shelved_until_ns:
-            return self._back(t, "shelve_expired", "", "", "")
+            return self._back(t, Transition.SHELVE_EXPIRED, "", "", "")
         return None
 
     def disable(self, t: int, user: str, host: str, note: str = "") -> Change:
         if self.state is State.DISABLED:
             raise Refused("already disabled")
         self.shelved_until_ns = 0
-        return self._to(State.DISABLED, "disabled", t, user=user, host=host, note=note)
+        return self._to(State.DISABLED, Transition.DISABLED, t, user=user, host=host, note=note)
 
     def enable(self, t: int, user: str, host: str, note: str = "") -> Change:
         if self.state is not State.DISABLED:
             raise Refused(f"it is not disabled (it is {self.state.value})")
-        return self._back(t, "enabled", user, host, note)
+        return self._back(t, Transition.ENABLED, user, host, note)
 
-    def _back(self, t: int, transition: str, user: str, host: str, note: str) -> Change:
+    def _back(self, t: int, transition: Transition, user: str, host: str, note: str) -> Change:
         """Out of shelve / service: unacked if the condition holds, normal if not."""
         self.shelved_until_ns = 0
         if self.active:

@@ -19,24 +19,36 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
-from fleetdaq.contract.keys import HUB
 from fleetdaq.contract.messages import ALARM_STATE_TYPE
 from fleetdaq.contract.requester_text import text_problem
 from fleetdaq.contract.wire import batch_values
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
-from fleetdaq.hub.read_model import AlarmView, HubView, NodeView, ReadModel
+from fleetdaq.hub.read_model import (
+    ALARM_TOTALS,
+    ALARMS,
+    AlarmView,
+    HubView,
+    JsonObject,
+    ReadModel,
+    number,
+)
 from fleetdaq.hub.recording.batch_feed import BatchFeed, FedBatch
 from fleetdaq.hub.recording.recorder import Recorder
 from fleetdaq.hub.requests import MAX_HOST_CHARS, MAX_NOTE_CHARS, MAX_USER_CHARS
 from fleetdaq.hub.supervision.alarms.conditions import Delayed, Flip, SampleCondition, StreamScreen
 from fleetdaq.hub.supervision.alarms.definitions import AlarmDef, build_definitions
-from fleetdaq.hub.supervision.alarms.journal import Journal
+from fleetdaq.hub.supervision.alarms.journal import Journal, as_float, as_int
 from fleetdaq.hub.supervision.alarms.kernels import batch_extremes, settle, warm_up
+from fleetdaq.hub.supervision.alarms.machines import (
+    HEALTH_FRESH_NS,
+    machine,
+    node_check,
+    partition_check,
+)
 from fleetdaq.hub.supervision.alarms.states import IN_ALARM, AlarmStatus, Change, State
 from fleetdaq.hub.supervision.alarms.told import Told, put_back, told
 from fleetdaq.hub.supervision.notification import Notifier
@@ -46,8 +58,6 @@ log = logging.getLogger("fleetdaq.alarms")
 
 ALARMS_TOPIC = "/alarms"
 TICK_S = 0.5
-HEALTH_FRESH_NS = 10_000_000_000
-"""Health older than this is not used for node alarms (node_down says the node is gone)."""
 
 
 class Alarm:
@@ -91,7 +101,7 @@ class Supervisor:
         feed: BatchFeed,
         journal_path: Path,
         notifier: Notifier | None = None,
-        snapshot: Any = None,
+        snapshot: Callable[[], HubView] | None = None,
         also_from: Sequence[BatchFeed] = (),
     ) -> None:
         """`also_from`: feeds of batches the recorder never takes (a partition's watched
@@ -102,7 +112,7 @@ class Supervisor:
         self.recorder = recorder
         self.notifier = notifier
         self.snapshot = snapshot
-        """() -> HubView: the hub's read model (the runtime's `snapshot`)."""
+        """The hub's read model (the runtime's `snapshot`); None: this model's own."""
         self.alarms = {d.name: Alarm(d) for d in build_definitions(site)}
         self.by_stream: dict[tuple[str, str], list[tuple[int, Alarm]]] = {}
         for a in self.alarms.values():
@@ -162,7 +172,7 @@ class Supervisor:
             return "the supervisor's batch thread died"
         return None
 
-    def _restore(self, last: dict[str, dict[str, Any]]) -> None:
+    def _restore(self, last: dict[str, JsonObject]) -> None:
         restored = 0
         for name, rec in last.items():
             a = self.alarms.get(name)
@@ -170,13 +180,13 @@ class Supervisor:
                 continue  # an alarm the site file no longer defines
             try:
                 s = a.status
-                s.state = State(rec["state"])
+                s.state = State(str(rec["state"]))
                 s.active = bool(rec["active"])
-                s.since_ns = int(rec["since_ns"])
-                s.count = int(rec["count"])
-                s.shelved_until_ns = int(rec.get("shelved_until_ns", 0))
+                s.since_ns = as_int(rec["since_ns"])
+                s.count = as_int(rec["count"])
+                s.shelved_until_ns = as_int(rec.get("shelved_until_ns", 0))
                 value = rec.get("value")
-                s.value = float(value) if value is not None else math.nan
+                s.value = as_float(value) if value is not None else math.nan
             except (KeyError, TypeError, ValueError):
                 log.warning("alarm journal: cannot restore %s from %r", name, rec)
                 continue
@@ -248,7 +258,7 @@ class Supervisor:
     def _run(self) -> None:
         try:
             while not self._stop.wait(TICK_S):
-                view: HubView = self.snapshot()
+                view = self.snapshot() if self.snapshot else self.model.snapshot(time.time_ns())
                 now = time.time_ns()
                 with self.lock:
                     for a in self.alarms.values():
@@ -340,9 +350,9 @@ class Supervisor:
                 return backlog > d.threshold, backlog
             return False, math.nan
         if d.kind == "node":
-            return _node_check(d, _machine(view, d.node), now)
+            return node_check(d, machine(view, d.node), now)
         if d.check.startswith("partition_"):  # a partition hub, as the main hub sees it
-            return _partition_check(d, view.partitions.get(d.node.removeprefix("hub/")) or {})
+            return partition_check(d, view.partitions.get(d.node.removeprefix("hub/")) or {})
         # the hub
         rec = view.recorder
         if d.check == "hub_disk":
@@ -361,7 +371,11 @@ class Supervisor:
             age = float(notifier.get("oldest_queued_age_s", 0.0)) if notifier else 0.0
             return age > d.threshold, age
         if d.check == "certificate_expiring":
-            ends = [c["not_after_ns"] for c in view.certificates.values() if "not_after_ns" in c]
+            ends = [
+                end
+                for c in view.certificates.values()
+                if (end := number(c, "not_after_ns")) is not None
+            ]
             if not ends:
                 return False, math.nan
             days = (min(ends) - now) / 86_400e9
@@ -399,8 +413,8 @@ class Supervisor:
         with self.lock:
             views = tuple(a.view() for a in self.alarms.values())
             totals = dict(self.totals)
-        self.model.put("alarms", views)
-        self.model.put("alarm_totals", totals)
+        self.model.put(ALARMS, views)
+        self.model.put(ALARM_TOTALS, totals)
 
     # --- operators (fleetdaq.hub.supervision.alarms.requests calls these) --------------------
 
@@ -472,78 +486,3 @@ class Supervisor:
                 out.append((name, True, s.state.value))
         self._publish()
         return out
-
-
-def _node_check(d: AlarmDef, node: NodeView | None, now: int) -> tuple[bool, float]:
-    """A node alarm's condition and value, from the node's (or a hub machine's) last health;
-    nothing to judge (False, NaN) without a fresh one."""
-    if d.check == "down":
-        return not (node is not None and node.alive), math.nan
-    health = node.health if node is not None else None
-    if d.check == "certificate" and health is not None:
-        # From its last health, fresh or not: a node whose pair has expired cannot connect
-        # to say so, and this alarm says why it is down. 0: no TLS, or it cannot tell.
-        ends = health.certificate_not_after_ns
-        if ends <= 0:
-            return False, math.nan
-        days = (ends - now) / 86_400e9
-        return days < d.threshold, days
-    if health is None or now - health.time_ns > HEALTH_FRESH_NS:
-        return False, math.nan
-    host = health.host
-    if d.check == "cpu":
-        return host.cpu_percent > d.threshold, host.cpu_percent
-    if d.check == "memory":
-        total = host.memory_total_bytes
-        used = 100.0 * (1 - host.memory_available_bytes / total) if total else 0.0
-        return used > d.threshold, used
-    if d.check == "disk":  # where a node spools; where a hub records
-        disk = host.disk("data" if d.node.split("/")[0] == HUB else "spool")
-        if disk is None or not disk.total_bytes:
-            return False, math.nan
-        free = 100.0 * disk.free_bytes / disk.total_bytes
-        return free < d.threshold, free
-    if d.check == "temperature":
-        temp = host.cpu_temperature_c
-        return bool(temp > d.threshold), temp
-    if d.check == "spool":
-        total_bytes = float(sum(s.spool_bytes for s in health.streams))
-        return total_bytes > d.threshold, total_bytes
-    if d.check == "unacked_age":
-        age = max((s.oldest_unacked_age_s for s in health.streams), default=0.0)
-        return age > d.threshold, age
-    status = health.time_status()
-    if d.check == "clock_unlocked":
-        locked = status is not None and status.state.value == "locked"
-        return not locked, math.nan
-    if d.check == "offset":
-        if status is None or status.offset_ns is None:
-            return False, math.nan
-        return abs(status.offset_ns) > d.threshold, float(status.offset_ns)
-    return False, math.nan
-
-
-def _machine(view: HubView, node: str) -> NodeView | None:
-    """A node, or a hub's own machine: ``hub`` (this hub's health) or ``hub/<name>`` (a
-    partition hub's, as the main hub last heard it)."""
-    if node == HUB:
-        h = view.hub_health
-        return NodeView(HUB, True, h, h.time_ns) if h is not None else None
-    if node.startswith(HUB + "/"):
-        return next((p for p in view.partition_hubs if p.node == node), None)
-    return view.node(node)
-
-
-def _partition_check(d: AlarmDef, p: dict[str, Any]) -> tuple[bool, float]:
-    """A partition hub's alarm from its state in the read model (`PartitionWatch`: its
-    liveliness, and its last report, checked field by field)."""
-    if d.check == "partition_down":
-        return not p.get("alive"), math.nan
-    if d.check == "partition_recorder":
-        rec = p.get("recorder") or {}
-        return rec.get("state") in ("disk_error", "failed"), float(rec.get("write_errors", 0))
-    disk = p.get("data_disk") or {}
-    if not disk.get("total_bytes"):
-        return False, math.nan
-    free = 100.0 * disk["free_bytes"] / disk["total_bytes"]
-    return free < d.threshold, free

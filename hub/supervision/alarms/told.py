@@ -9,10 +9,10 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
 
 from fleetdaq.contract.cdr import encode
 from fleetdaq.contract.messages import AlarmState
+from fleetdaq.hub.read_model import JsonObject
 from fleetdaq.hub.supervision.alarms.definitions import AlarmDef
 from fleetdaq.hub.supervision.alarms.states import AlarmStatus, Change
 from fleetdaq.hub.supervision.notification import Notification
@@ -29,7 +29,7 @@ RAISED_LEVEL = {
 class Told:
     """One transition as the journal, the recording, events.log and the notifier get it."""
 
-    journal: dict[str, Any]
+    journal: JsonObject
     record: bytes
     level: int
     tag: str
@@ -49,7 +49,7 @@ def told(d: AlarmDef, s: AlarmStatus, change: Change) -> Told:
         user=change.user, host=change.host, note=change.note,
         shelved_until_ns=s.shelved_until_ns,
     )  # fmt: skip
-    journal = {
+    journal: JsonObject = {
         "name": d.name,
         "state": s.state.value,
         "active": s.active,

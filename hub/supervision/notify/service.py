@@ -28,12 +28,11 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.notify import NotifyConfig
 from fleetdaq.hub.errors import NotifyError
-from fleetdaq.hub.read_model import ReadModel
+from fleetdaq.hub.read_model import NOTIFIER, NotifierCounters, ReadModel
 from fleetdaq.hub.supervision.notification import Notification
 from fleetdaq.hub.supervision.notify.clock import SYSTEM_CLOCK, Clock
 from fleetdaq.hub.supervision.notify.compose import Letterhead, compose
@@ -361,7 +360,7 @@ class EmailNotifier:
 
     # --- what the hub sees ---------------------------------------------------------------------
 
-    def counters(self) -> dict[str, Any]:
+    def counters(self) -> NotifierCounters:
         """The read model's ``notifier`` part."""
         smtp, d = self.cfg.smtp, self.delivery
         now = self.clock.time()
@@ -419,7 +418,7 @@ class EmailNotifier:
     def _publish(self) -> None:
         try:
             with self._lock:
-                self.model.put("notifier", self.counters())
+                self.model.put(NOTIFIER, self.counters())
         except Exception:
             log.exception("e-mail: cannot publish the notifier's counters")
 
