@@ -73,7 +73,18 @@ def open_context(
     site: SiteConfig, data_dir: Path, listen: list[str], partition: str | None = None
 ) -> tuple[HubContext, RefusedTraffic]:
     """The shared parts of a hub (nothing opened yet: the router binds at start), and the
-    counter of what its router refuses."""
+    counter of what its router refuses.
+
+    Raises:
+        TypeError: `site` was loaded with the edges' schema (`fleetdaq.contract.config.load`),
+            which leaves the hub's own sections unchecked; the hub needs
+            `fleetdaq.hub.config.load`.
+    """
+    if not isinstance(site, SiteConfig):
+        raise TypeError(
+            "a hub needs its site file loaded with the hub's schema (fleetdaq.hub.config.load),"
+            f" not {type(site).__module__}.{type(site).__name__}"
+        )
     bus = EventBus(node=event_node(partition))
     model = ReadModel(site.site)
     refused = (

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from fleetdaq.contract.config.load import parse_config
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.config.site import SiteConfig
 from fleetdaq.hub.runtime import HubRuntime, PartitionRuntime
 

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 from rosbags.rosbag2 import Reader
 
-from fleetdaq.contract.config.load import parse_config
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchEncoder, encode_u64, read_header
 from fleetdaq.hub.recording.session import topic_of
