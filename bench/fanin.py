@@ -295,7 +295,7 @@ def _threads_cpu(proc: Any) -> dict[str, float]:
 
 def _hub_status(session: Any) -> dict[str, Any] | None:
     from fleetdaq.contract.keys import SiteKeys
-    from fleetdaq.hub.live.status import query_status
+    from fleetdaq.hub.live.status_query import query_status
 
     return query_status(session, SiteKeys(SITE), 3.0)
 

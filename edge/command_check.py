@@ -52,7 +52,10 @@ class OutputView:
 
 
 @dataclass(frozen=True, slots=True)
-class NodeView:
+class NodeControlState:
+    """The node's side of a command check: whether it is in its safe state (and why), and its
+    limit on a command's age (named apart from the hub's read-model `NodeView`)."""
+
     safe_state: bool
     safe_reason: str
     max_command_age_s: float
@@ -66,7 +69,7 @@ def age_limit_s(cmd: OutputCommand, node_limit_s: float) -> float:
 
 
 def check_command(
-    cmd: OutputCommand, out: OutputView, node: NodeView, now_ns: int, now_s: float
+    cmd: OutputCommand, out: OutputView, node: NodeControlState, now_ns: int, now_s: float
 ) -> Refusal | None:
     """Why `cmd` must be refused (None: apply it). `now_ns` is CLOCK_REALTIME, `now_s` the
     monotonic clock in seconds."""

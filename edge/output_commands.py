@@ -29,7 +29,7 @@ from fleetdaq.contract.cdr import decode, encode
 from fleetdaq.contract.errors import DriverError, WireError
 from fleetdaq.contract.messages import OutputAction, OutputCommand, OutputReply, RefusalReason
 from fleetdaq.contract.requester_text import text_problem
-from fleetdaq.edge.command_check import NodeView, Refusal, age_limit_s, check_command
+from fleetdaq.edge.command_check import NodeControlState, Refusal, age_limit_s, check_command
 from fleetdaq.edge.drivers.pacing import TimeSource
 from fleetdaq.edge.event_publisher import EventPublisher
 from fleetdaq.edge.interlocks import Interlocks
@@ -138,7 +138,9 @@ class CommandDesk:
                 f"no output {cmd.output!r} on {self.node} (outputs: {known})",
             )
             return self._finish(cmd, output, unknown)
-        node = NodeView(self.state.safe_state, self.state.safe_reason, self.max_command_age_s)
+        node = NodeControlState(
+            self.state.safe_state, self.state.safe_reason, self.max_command_age_s
+        )
         view = ch.view(self.interlocks.active_for(ch.name))
         refusal = check_command(cmd, view, node, now_ns, ch.now_s())
         if refusal is None:

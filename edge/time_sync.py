@@ -22,7 +22,7 @@ from fleetdaq.contract.messages import TimeSyncStatus
 from fleetdaq.ptp.checks import Thresholds, defaults_for
 from fleetdaq.ptp.quality import UNSYNCED, ClockQuality
 from fleetdaq.ptp.reader import ChronyReader, Ptp4lReader, Reader
-from fleetdaq.ptp.status import (
+from fleetdaq.ptp.time_status import (
     GRANDMASTER_CHANGED,
     STATE_TAGS,
     Level,

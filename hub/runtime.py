@@ -71,7 +71,7 @@ class _Runtime:
         self.event_log = hub.event_log
         self.feed = hub.recording.feed
         self.recorder = hub.recording.recorder
-        self.snapshots = hub.recording.snapshots
+        self.snapshot_buffer = hub.recording.snapshots
         self.nodes = hub.nodes.watch
         self.certificates = hub.supervision.certificates
         self.hub_health = hub.supervision.hub_health
@@ -124,7 +124,7 @@ class _Runtime:
     def snapshot(self) -> HubView:
         view = self.model.snapshot(time.time_ns())
         failures = tuple(self.failures()) if self.started else ()
-        snapshots = self.snapshots.counters() if self.snapshots is not None else {}
+        snapshots = self.snapshot_buffer.counters() if self.snapshot_buffer is not None else {}
         return dataclasses.replace(view, failures=failures, snapshots=snapshots)
 
 

@@ -8,7 +8,7 @@
   adjtimex), the interface's timestamping capabilities, PHC time.
 - `fleetdaq.ptp.checks`: thresholds and checks, and the clock state (LOCKED / HOLDOVER / FREERUN);
   `fleetdaq.ptp.reader`: one reading after another with the memory holdover needs;
-  `fleetdaq.ptp.status`: the
+  `fleetdaq.ptp.time_status`: the
   result (`TimeStatus`), which node health carries and the hub's fleet view reads.
 - `ptp/templates/`: ptp4l and phc2sys configuration for grandmaster and slave.
 """

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from fleetdaq.ptp.chrony import ChronyTracking
 from fleetdaq.ptp.datasets import HARDWARE_TIMESTAMPING, PortState, Ptp4lSnapshot
 from fleetdaq.ptp.host import KernelClock, TimestampingCaps
-from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus, format_ns
+from fleetdaq.ptp.time_status import Check, Level, SyncState, TimeStatus, format_ns
 
 S = 1_000_000_000
 

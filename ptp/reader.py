@@ -33,7 +33,7 @@ from fleetdaq.ptp.host import KernelClock, TimestampingCaps, phc_time_ns, read_k
 from fleetdaq.ptp.host import timestamping_caps as read_caps
 from fleetdaq.ptp.management import DEFAULT_UDS, Ptp4lClient
 from fleetdaq.ptp.pmc import snapshot_via_pmc
-from fleetdaq.ptp.status import SyncState, TimeStatus
+from fleetdaq.ptp.time_status import SyncState, TimeStatus
 
 
 class Reader(Protocol):

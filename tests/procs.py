@@ -130,7 +130,7 @@ class HubClient:
 
     def status(self, timeout: float = 2.0) -> dict[str, Any] | None:
         """The hub's status, or None when no hub answers within `timeout` s."""
-        from fleetdaq.hub.live.status import query_status
+        from fleetdaq.hub.live.status_query import query_status
 
         return query_status(self.session, self.keys, timeout)
 

@@ -9,7 +9,7 @@ import pytest
 
 from fleetdaq.contract.messages import OutputCommand
 from fleetdaq.contract.schema import OutputBase
-from fleetdaq.edge.command_check import NodeView, OutputView, check_command
+from fleetdaq.edge.command_check import NodeControlState, OutputView, check_command
 from fleetdaq.hub.config.load import parse_config
 
 NOW_NS = 1_800_000_000_000_000_000
@@ -27,7 +27,7 @@ def _cfg(text: str) -> OutputBase:
 
 VALVE = _cfg("{driver: mcp4725, min: 0, max: 3, safe: 0, max_rate: 0.5, sim: {}}")
 RELAY = _cfg("{driver: pcf8574, address: 0x20, pin: 0, safe: 0, sim: {}}")
-READY = NodeView(safe_state=False, safe_reason="", max_command_age_s=5.0)
+READY = NodeControlState(safe_state=False, safe_reason="", max_command_age_s=5.0)
 
 
 def _cmd(action: str = "set", value: float = 1.0, **kw: object) -> OutputCommand:
@@ -59,7 +59,7 @@ def _view(cfg: OutputBase = VALVE, **kw: object) -> OutputView:
     return OutputView(**fields)  # type: ignore[arg-type]
 
 
-def _why(cmd: OutputCommand, view: OutputView | None = None, node: NodeView = READY) -> str:
+def _why(cmd: OutputCommand, view: OutputView | None = None, node: NodeControlState = READY) -> str:
     refusal = check_command(cmd, view or _view(), node, NOW_NS, NOW_S)
     return "" if refusal is None else refusal.reason
 
@@ -80,8 +80,8 @@ def test_an_armed_output_within_its_limits_and_rate_is_applied() -> None:
         (_cmd(issued_ns=NOW_NS - 6 * 10**9), None, READY, "too_old"),
         (_cmd(issued_ns=NOW_NS + 6 * 10**9), None, READY, "too_old"),
         (_cmd(issued_ns=NOW_NS - 2 * 10**9, max_age_s=1.0), None, READY, "too_old"),
-        (_cmd(), None, NodeView(True, "no hub", 5.0), "safe_state"),
-        (_cmd(action="arm"), None, NodeView(True, "no hub", 5.0), "safe_state"),
+        (_cmd(), None, NodeControlState(True, "no hub", 5.0), "safe_state"),
+        (_cmd(action="arm"), None, NodeControlState(True, "no hub", 5.0), "safe_state"),
         (_cmd(), _view(interlocks=("hot",)), READY, "interlock"),
         (_cmd(), _view(armed=False), READY, "not_armed"),
         (_cmd(value=3.5), None, READY, "out_of_limits"),
@@ -91,7 +91,7 @@ def test_an_armed_output_within_its_limits_and_rate_is_applied() -> None:
     ],
 )
 def test_each_refusal_reason(
-    cmd: OutputCommand, view: OutputView | None, node: NodeView, reason: str
+    cmd: OutputCommand, view: OutputView | None, node: NodeControlState, reason: str
 ) -> None:
     assert _why(cmd, view, node) == reason
 
@@ -99,7 +99,7 @@ def test_each_refusal_reason(
 def test_read_and_disarm_are_never_refused_for_state() -> None:
     blocked = _view(armed=False, interlocks=("hot",))
     for action in ("read", "disarm"):
-        assert _why(_cmd(action=action), blocked, NodeView(True, "no hub", 5.0)) == ""
+        assert _why(_cmd(action=action), blocked, NodeControlState(True, "no hub", 5.0)) == ""
 
 
 def test_arm_is_allowed_once_the_hub_is_back_even_with_an_interlock_active() -> None:
@@ -108,7 +108,7 @@ def test_arm_is_allowed_once_the_hub_is_back_even_with_an_interlock_active() -> 
 
 def test_the_first_reason_wins_in_the_documented_order() -> None:
     everything = _view(armed=False, interlocks=("hot",))
-    assert _why(_cmd(value=9.0), everything, NodeView(True, "x", 5.0)) == "safe_state"
+    assert _why(_cmd(value=9.0), everything, NodeControlState(True, "x", 5.0)) == "safe_state"
     assert _why(_cmd(value=9.0), everything) == "interlock"
     assert _why(_cmd(value=9.0), _view(armed=False)) == "not_armed"
     assert _why(_cmd(value=9.0, issued_ns=0), everything) == "too_old"

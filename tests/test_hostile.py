@@ -40,7 +40,7 @@ def _wait_for_no_holes(port: int, timeout: float = 60.0) -> None:
     import zenoh
 
     from fleetdaq.contract.keys import SiteKeys
-    from fleetdaq.hub.live.status import query_status
+    from fleetdaq.hub.live.status_query import query_status
     from fleetdaq.runtime.zenoh_session import client_config
 
     session = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))

@@ -28,7 +28,7 @@ from fleetdaq.contract.messages import (
     TimeSyncStatus,
     make_event,
 )
-from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus
+from fleetdaq.ptp.time_status import Check, Level, SyncState, TimeStatus
 
 
 def _store(name: str):  # type: ignore[no-untyped-def]

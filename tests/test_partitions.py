@@ -25,7 +25,7 @@ from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.messages import OutputCommand, make_event
 from fleetdaq.contract.wire import BatchEncoder, encode_u64
 from fleetdaq.hub.config.load import load_config
-from fleetdaq.hub.live.status import query_status
+from fleetdaq.hub.live.status_query import query_status
 from fleetdaq.hub.partitions.runtime import partition_key
 from fleetdaq.ptp.quality import UNSYNCED
 from tests.procs import HubClient, Proc, free_port, node_alive, stream_view, wait_until

@@ -15,9 +15,9 @@ import pytest
 import zenoh
 from rosbags.rosbag2 import Reader
 
-from fleetdaq.hub.config.load import parse_config
 from fleetdaq.contract.keys import SiteKeys
 from fleetdaq.contract.wire import BatchEncoder, encode_u64, read_header
+from fleetdaq.hub.config.load import parse_config
 from fleetdaq.hub.recording.session import topic_of
 from fleetdaq.hub.runtime import HubRuntime
 from fleetdaq.ptp.quality import UNSYNCED

@@ -106,7 +106,7 @@ def test_an_alarm_writes_the_seconds_before_it_and_a_second_alarm_shares_it(
                 seq += 1
 
         send(1.0, 40)  # 4 s of normal data: more than the 3 s the buffer keeps
-        wait_until(lambda: runtime.snapshots.counters()["held_messages"] >= 30, 20, "held")  # type: ignore[union-attr]
+        wait_until(lambda: runtime.snapshot_buffer.counters()["held_messages"] >= 30, 20, "held")  # type: ignore[union-attr]
         send(9.0, 2)  # both alarms raise
         wait_until(lambda: runtime.snapshot().snapshots["written"] == 1, 30, "the alarm's snapshot")
         view = runtime.snapshot()

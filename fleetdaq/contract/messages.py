@@ -13,7 +13,7 @@ from enum import StrEnum
 from typing import Final
 
 from fleetdaq.contract.cdr import decode, define, encode, load_definition, message, schema_text
-from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus
+from fleetdaq.ptp.time_status import Check, Level, SyncState, TimeStatus
 
 __all__ = [
     "AlarmState",
@@ -197,7 +197,7 @@ _FROM_TRI = {0: False, 1: True}
 @message("fleetdaq_msgs/msg/TimeSyncStatus")
 @dataclass(frozen=True, slots=True)
 class TimeSyncStatus:
-    """`fleetdaq.ptp.status.TimeStatus` on the wire (`known` False: no source, or nothing read
+    """`fleetdaq.ptp.time_status.TimeStatus` on the wire (`known` False: no source, or nothing read
     yet)."""
 
     known: bool

@@ -7,11 +7,11 @@ from concurrent.futures import ThreadPoolExecutor
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
+from fleetdaq.fleet.host_status import FleetStatus, HostStatus, fleet_problems
 from fleetdaq.fleet.inventory import Host, Inventory
 from fleetdaq.fleet.layout import layout_for
 from fleetdaq.fleet.probe import probe
 from fleetdaq.fleet.ssh import SshOptions
-from fleetdaq.fleet.status import FleetStatus, HostStatus, fleet_problems
 
 if TYPE_CHECKING:
     from fleetdaq.contract.config.site import SiteConfig

@@ -17,16 +17,16 @@ import paramiko
 
 from fleetdaq.fleet.errors import CommandTimeout, SshError
 from fleetdaq.fleet.facts import DirUsage, Facts, Unit, facts_script, parse_facts
-from fleetdaq.fleet.inventory import Host
-from fleetdaq.fleet.layout import HostLayout
-from fleetdaq.fleet.ssh import Connection, SshOptions, connect
-from fleetdaq.fleet.status import (
+from fleetdaq.fleet.host_status import (
     MIN_FREE_FRACTION,
     CertificatesView,
     HostStatus,
     RecorderView,
     TimeView,
 )
+from fleetdaq.fleet.inventory import Host
+from fleetdaq.fleet.layout import HostLayout
+from fleetdaq.fleet.ssh import Connection, SshOptions, connect
 
 NO_OPERATOR_PAIR = "security.tls is on, but "
 """How `fleetdaq rec status` says it has no operator pair to ask the hub with."""
@@ -52,7 +52,7 @@ def parse_version(stdout: str) -> str | None:
 
 def parse_time(stdout: str, expected: bool) -> TimeView:
     """``fleetdaq ptp status --json`` -> `TimeView`. Raises ValueError on anything else."""
-    from fleetdaq.ptp.status import TimeStatus
+    from fleetdaq.ptp.time_status import TimeStatus
 
     try:
         data = json.loads(stdout)

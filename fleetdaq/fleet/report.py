@@ -9,7 +9,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from fleetdaq.fleet.status import FleetStatus, HostStatus
+from fleetdaq.fleet.host_status import FleetStatus, HostStatus
 from fleetdaq.text import duration_text, size_text
 
 _ROLE = {"hub": "hub", "edges": "edge", "ptp_grandmaster": "gm"}

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from fleetdaq.hub.context import HubContext
 from fleetdaq.hub.live.foxglove.service import FoxgloveLive
 from fleetdaq.hub.live.plots import LivePlots
-from fleetdaq.hub.live.status import StatusService
+from fleetdaq.hub.live.status_query import StatusService
 from fleetdaq.hub.live.web.parts import HubParts, Outputs, RequestHandler
 from fleetdaq.hub.live.web.service import WebService
 from fleetdaq.hub.read_model import HubView

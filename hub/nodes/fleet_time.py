@@ -23,7 +23,7 @@ from typing import Any
 from fleetdaq.contract.messages import Event, NodeHealth
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.read_model import FLEET, FleetDict, NodeTimeDict, ReadModel
-from fleetdaq.ptp.status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
+from fleetdaq.ptp.time_status import GRANDMASTER_CHANGED, SyncState, format_ns, state_of_tag
 
 Emit = Callable[..., None]
 """emit(level, source, tag, message, **fields): `EventBus.emit`."""

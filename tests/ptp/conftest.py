@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from fleetdaq.ptp.reader import Ptp4lReader
-from fleetdaq.ptp.status import SyncState
+from fleetdaq.ptp.time_status import SyncState
 from tests.ptp import clock_guard as guard
 from tests.ptp.clock_guard import ClockMark, mark
 from tests.ptp.lab import STARTED, Lab, Ptp4l, netns_possible, wait_for

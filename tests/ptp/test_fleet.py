@@ -7,7 +7,7 @@ from dataclasses import replace
 
 from fleetdaq.contract.messages import Event, KeyValue, NodeHealth, TimeSyncStatus
 from fleetdaq.hub.nodes.fleet_time import FleetTime
-from fleetdaq.ptp.status import Check, Level, SyncState, TimeStatus
+from fleetdaq.ptp.time_status import Check, Level, SyncState, TimeStatus
 
 GM_A, GM_B = "aaaaaa.fffe.000001", "bbbbbb.fffe.000002"
 

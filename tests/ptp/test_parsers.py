@@ -16,7 +16,7 @@ from fleetdaq.ptp.errors import ManagementError, ParseError
 from fleetdaq.ptp.host import KernelClock
 from fleetdaq.ptp.management import decode_response, encode_get, snapshot_from
 from fleetdaq.ptp.pmc import parse_pmc
-from fleetdaq.ptp.status import Level, SyncState, TimeStatus
+from fleetdaq.ptp.time_status import Level, SyncState, TimeStatus
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "ptp"
 CAPTURES = ("slave_locked", "slave_lost_master", "slave_alone", "grandmaster")

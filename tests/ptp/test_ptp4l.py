@@ -19,7 +19,7 @@ from fleetdaq.ptp.host import read_kernel_clock
 from fleetdaq.ptp.management import Ptp4lClient, snapshot_from
 from fleetdaq.ptp.pmc import parse_pmc, run_pmc, snapshot_via_pmc
 from fleetdaq.ptp.reader import Ptp4lReader
-from fleetdaq.ptp.status import GRANDMASTER_CHANGED, Level, SyncState
+from fleetdaq.ptp.time_status import GRANDMASTER_CHANGED, Level, SyncState
 from tests.ptp.conftest import SLAVE, PtpLab, locked_to, tool_path
 from tests.ptp.lab import REPO, wait_for
 

@@ -17,7 +17,7 @@ class TimeView:
     """The host's own ``fleetdaq ptp status --json``, the parts an operator reads first."""
 
     state: str
-    """``locked``, ``holdover``, ``freerun``, ... (`fleetdaq.ptp.status.SyncState`)."""
+    """``locked``, ``holdover``, ``freerun``, ... (`fleetdaq.ptp.time_status.SyncState`)."""
     level: str
     """``ok``, ``warn``, ``fail``."""
     offset_ns: int | None
