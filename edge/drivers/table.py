@@ -14,7 +14,7 @@ import importlib
 from collections.abc import Callable
 from typing import Any, cast
 
-from fleetdaq.contract.drivers import DriverKind, driver_registry
+from fleetdaq.contract.drivers import DriverKind, DriverPlugin, driver_registry
 from fleetdaq.contract.schema import OutputBase, StreamBase
 from fleetdaq.edge.drivers.base import Driver, OutputDriver
 from fleetdaq.edge.drivers.pacing import SYSTEM_TIME, TimeSource
@@ -26,6 +26,12 @@ def load_sim(target: str) -> Callable[..., Any]:
     module_name, _, name = target.partition(":")
     factory: Callable[..., Any] = getattr(importlib.import_module(module_name), name)
     return factory
+
+
+def _factory(spec: DriverPlugin) -> Callable[..., object]:
+    """A plugin's driver as this module calls it: with the keywords of its kind (the registry
+    types it only as a callable of its own config class)."""
+    return cast(Callable[..., object], spec.driver)
 
 
 def create_driver(
@@ -40,13 +46,14 @@ def create_driver(
         DriverError: no driver of that name (or it failed to load: the reason).
     """
     spec = driver_registry().plugin(cfg.driver, DriverKind.STREAM)
+    make = _factory(spec)
     shared = shared if shared is not None else SharedDevices()
     if spec.sim is not None and getattr(cfg, "sim", None) is not None:
         transport = load_sim(spec.sim)(cfg, clock, shared)
-        return cast(Driver, spec.driver(cfg, transport=transport, clock=clock))
+        return cast(Driver, make(cfg, transport=transport, clock=clock))
     if spec.shared:
-        return cast(Driver, spec.driver(cfg, clock=clock, shared=shared))
-    return cast(Driver, spec.driver(cfg))
+        return cast(Driver, make(cfg, clock=clock, shared=shared))
+    return cast(Driver, make(cfg))
 
 
 def create_output(
@@ -63,7 +70,8 @@ def create_output(
     transport = None
     if spec.sim is not None and getattr(cfg, "sim", None) is not None:
         transport = load_sim(spec.sim)(cfg, clock, shared)
-    return cast(OutputDriver, spec.driver(cfg, transport=transport, clock=clock, shared=shared))
+    make = _factory(spec)
+    return cast(OutputDriver, make(cfg, transport=transport, clock=clock, shared=shared))
 
 
 def display_sim(driver: str) -> str | None:

@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib.metadata import EntryPoint, entry_points
-from typing import Literal, get_args, get_origin
+from typing import Literal, Never, get_args, get_origin
 
 from pydantic import BaseModel
 
@@ -52,10 +52,13 @@ class DriverPlugin:
     schema: type[BaseModel]
     """The config schema; its ``driver`` field is ``Literal["<the entry point's name>"]``. A
     stream's derives from `StreamBase`, an output's from `OutputBase`."""
-    driver: Callable[..., object]
+    driver: Callable[[Never], object] | Callable[[Never, Never], object]
     """Stream: ``driver(cfg)`` opens the real device, ``driver(cfg, transport=t, clock=c)`` runs
     the same code on a simulated transport. Output: ``driver(cfg, transport=None, clock=c,
-    shared=s)``. Display: the device class the display loop drives."""
+    shared=s)``. Display: the device class the display loop drives, ``driver(bus, address)``.
+    Typed as what each is, a callable of its config (of a bus and an address for a display);
+    `Never`: the registry cannot know those classes. `fleetdaq.edge.drivers.table` calls it
+    with the keywords of its kind."""
     sim: str | None = None
     """``"module:function"``: ``function(cfg, clock, shared)`` builds the simulated transport
     used when the config has a ``sim:`` block (displays: ``function(cfg, clock)``). None for
