@@ -4,27 +4,15 @@ no alarm changes state and the target is not met, however cheap the alarms were.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from typing import Any
 
-from tests.procs import REPO
+from tests.bench_run import run_bench
 
 
 def _part1(*extra: str) -> dict[str, Any]:
-    run = subprocess.run(
-        [sys.executable, str(REPO / "bench" / "alarms.py"), "--skip-throughput",
-         "--batches", "100", "--rounds", "1", *extra],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-4000:]
-    result: dict[str, Any] = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["bench"] == "alarms"
+    result = run_bench(
+        "alarms.py", "--skip-throughput", "--batches", "100", "--rounds", "1", *extra, timeout=120
+    )
     assert result["throughput"] is None
     assert result["met"]["throughput"] is None
     return result

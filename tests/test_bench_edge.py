@@ -4,26 +4,13 @@ reached the subscriber."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
-from tests.procs import REPO
+from tests.bench_run import run_bench
 
 
 def test_edge_bench_flags_are_false_when_their_puts_are_lost() -> None:
-    run = subprocess.run(
-        [sys.executable, str(REPO / "bench" / "edge.py"), "--data-seconds", "2", "--rounds", "1",
-         "--paced", "0"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=150,
-        check=False,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-4000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["bench"] == "edge"
+    result = run_bench(
+        "edge.py", "--data-seconds", "2", "--rounds", "1", "--paced", "0", timeout=150
+    )
     assert set(result["met"]) == set(result["targets"])
     by_phase = result["puts_not_delivered_by_phase"]
     assert result["puts_not_delivered"] == sum(by_phase.values())

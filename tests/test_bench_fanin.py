@@ -4,25 +4,11 @@ small N."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
-from tests.procs import REPO
+from tests.bench_run import run_bench
 
 
 def test_fanin_quick_records_every_edge_with_no_gap() -> None:
-    run = subprocess.run(
-        [sys.executable, str(REPO / "bench" / "fanin.py"), "--quick", "--no-raw"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=150,
-        check=False,
-    )
-    assert run.returncode == 0, run.stderr[-4000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["bench"] == "fanin"
+    result = run_bench("fanin.py", "--quick", "--no-raw", timeout=150)
     assert result["targets"] == {"edges": 100, "latency_p99_ms": 100.0}
     (step,) = result["steps"]
     assert "error" not in step, step

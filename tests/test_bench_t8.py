@@ -4,25 +4,11 @@ at least work, and be judged on what was recorded, over a few seconds."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
-from tests.procs import REPO
+from tests.bench_run import run_bench
 
 
 def test_t8_bench_compares_the_hub_count_with_the_agent_count() -> None:
-    run = subprocess.run(
-        [sys.executable, str(REPO / "bench" / "t8.py"), "--seconds", "3"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=150,
-        check=False,
-    )
-    assert run.returncode == 0, run.stderr[-4000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["bench"] == "t8"
+    result = run_bench("t8.py", "--seconds", "3", timeout=150)
     assert result["agent_batches"] > 0
     assert result["drained"] is True
     # Every batch the agent sent is in the hub's count, with every sample.
