@@ -741,6 +741,12 @@ def main() -> None:
     held = [s for s in steps if s["held"]]
     measured = [s for s in steps if "error" not in s]
     best = max(held, key=lambda s: s["n"]) if held else None
+    largest = best["n"] if best else 0
+    why = [f"N={s['n']}: {s.get('failed') or s['error']}" for s in steps if not s["held"]]
+    if largest < TARGET_EDGES:
+        why.append(f"largest N held {largest}, below the target {TARGET_EDGES}")
+    if not measured:
+        why.append("no step was measured")
     first = steps[0] if steps and "error" not in steps[0] else None
     for s in steps:
         if first is not None and "error" not in s:
@@ -767,9 +773,7 @@ def main() -> None:
                 "edges": bool(best and best["n"] >= TARGET_EDGES),
                 "gaps": bool(measured) and all(s["gaps"] == 0 for s in measured),
             },
-            "not_met_because": [
-                f"N={s['n']}: {s.get('failed') or s['error']}" for s in steps if not s["held"]
-            ],
+            "not_met_because": why,
             "cpus": os.cpu_count(),
         }
     )
