@@ -189,9 +189,11 @@ def main() -> None:
     stream = summary.get("streams", {}).get("wec/t8")
     if stream is None:
         hub_batches, hub_samples, hub_gaps, hub_first, hub_last = 0, 0, -1, None, None
+        hub_acked = None
     else:
         hub_batches, hub_samples, hub_gaps = stream["batches"], stream["samples"], stream["gaps"]
         hub_first, hub_last = stream["first_sequence"], stream["last_sequence"]
+        hub_acked = stream["acked"]
     samples = scans * CHANNELS
     gen_cpu = generation_cpu(site.nodes["wec"].streams["t8"], round(scans / SCANS))  # type: ignore[arg-type]
     lost = health["skipped_scans"] + max(hub_gaps, 0) * SCANS
@@ -234,6 +236,11 @@ def main() -> None:
         "hub_samples": hub_samples,
         "hub_gaps": hub_gaps,
         "drained": drained,
+        # Where a shortfall lies: up to the drain target everything was acked; the batches
+        # after it were acquired while the agent closed (none replayed after that).
+        "drain_target_sequence": target_seq,
+        "agent_last_sequence": agent_last_seq,
+        "hub_acked_sequence": hub_acked,
         "lost_scans": lost,
         "target": "0 scans lost because of the agent at 8 x 40 kS/s, and the hub records every "
         "batch and sample the agent sent (absolute)",
