@@ -14,10 +14,11 @@ Reported: CPU seconds per million samples of this process (every thread: driver,
 clock fit, spool, encoding, Zenoh), and the same without the simulator's own signal
 generation (which a real T8 does in hardware; measured separately and subtracted); scans
 lost (LJM buffer overflows, read errors, sequence gaps at the hub); the largest LJM backlog.
-At the end the agent waits (--drain-s) until the hub has acked its last batch, then the hub's
-own count (its --summary file) is compared with the agent's: the same batches (0..last), the
-same samples, no gap. The last line on stdout is one JSON object with the figures, the target
-and `met`, false with the reasons in `not_met_because` when anything was lost or not recorded.
+At the end the agent waits (--drain-s) until the hub has acked every batch of the window, then
+closes, and the hub's own count (its --summary file) is compared with the agent's: the same
+batches (0..last, those sent while it closed included), the same samples, no gap. The last
+line on stdout is one JSON object with the figures, the target and `met`, false with the
+reasons in `not_met_because` when anything was lost or not recorded.
 """
 
 from __future__ import annotations
