@@ -14,11 +14,11 @@ Reported: CPU seconds per million samples of this process (every thread: driver,
 clock fit, spool, encoding, Zenoh), and the same without the simulator's own signal
 generation (which a real T8 does in hardware; measured separately and subtracted); scans
 lost (LJM buffer overflows, read errors, sequence gaps at the hub); the largest LJM backlog.
-At the end the agent waits (--drain-s) until the hub has acked every batch of the window, then
-closes, and the hub's own count (its --summary file) is compared with the agent's: the same
-batches (0..last, those sent while it closed included), the same samples, no gap. The last
-line on stdout is one JSON object with the figures, the target and `met`, false with the
-reasons in `not_met_because` when anything was lost or not recorded.
+At the end the agent waits (--drain-s) until the hub has acked every batch it has sent (any
+dropped on the way replayed), then closes, and the hub's own count (its --summary file) is
+compared with the agent's: the same batches (0..last, any sent while it closed included), the
+same samples, no gap. The last line on stdout is one JSON object with the figures, the target
+and `met`, false with the reasons in `not_met_because` when anything was lost or not recorded.
 """
 
 from __future__ import annotations
@@ -94,13 +94,15 @@ def progress(msg: str) -> None:
     print(f"[t8] {msg}", file=sys.stderr, flush=True)
 
 
-def wait_acked(loop: Any, sequence: int, timeout: float) -> bool:
-    """Wait until the hub has acked `sequence` of this stream (durably recorded)."""
+def wait_acked(loop: Any, timeout: float) -> bool:
+    """Wait until the hub has acked every batch the stream has sent so far (a moving target
+    while it runs: it is met between two batches once the acks keep up, and a batch dropped on
+    the way has been replayed by then)."""
     deadline = time.monotonic() + timeout
-    while loop.spool.acked < sequence:
+    while loop.spool.acked < loop.counters.next_sequence - 1:
         if time.monotonic() >= deadline:
             return False
-        time.sleep(0.05)
+        time.sleep(0.01)
     return True
 
 
@@ -169,14 +171,17 @@ def main() -> None:
             scans = loop.counters.scans - scans0
             health = driver.health()
             read_errors = loop.counters.read_errors
-            # Drain: everything acquired up to here must be acked (durably recorded) before
-            # the agent closes, so the hub's count can be compared with the agent's.
+            # Drain: everything sent must be acked (durably recorded) just before the agent
+            # closes, so the hub's count can be compared with the agent's; what is sent between
+            # that and the close (a batch at most) must reach the hub too.
             target_seq = loop.counters.next_sequence - 1
-            drained = wait_acked(loop, target_seq, args.drain_s)
+            drained = wait_acked(loop, args.drain_s)
+            acked_at_close = loop.spool.acked
             agent.close()
             agent_batches = loop.counters.batches
             agent_last_seq = loop.counters.next_sequence - 1
             agent_scans = loop.counters.scans
+            replayed = loop.counters.replayed
         finally:
             if hub.poll() is None:
                 hub.send_signal(signal.SIGTERM)
@@ -237,9 +242,11 @@ def main() -> None:
         "hub_samples": hub_samples,
         "hub_gaps": hub_gaps,
         "drained": drained,
-        # Where a shortfall lies: up to the drain target everything was acked; the batches
-        # after it were acquired while the agent closed (none replayed after that).
-        "drain_target_sequence": target_seq,
+        # Where a shortfall lies: the last sequence of the window, what was acked when the
+        # agent closed (everything sent by then), the last it sent, and the hub's final ack.
+        "window_last_sequence": target_seq,
+        "acked_at_close": acked_at_close,
+        "replayed_batches": replayed,
         "agent_last_sequence": agent_last_seq,
         "hub_acked_sequence": hub_acked,
         "lost_scans": lost,
