@@ -14,14 +14,17 @@ Reported: CPU seconds per million samples of this process (every thread: driver,
 clock fit, spool, encoding, Zenoh), and the same without the simulator's own signal
 generation (which a real T8 does in hardware; measured separately and subtracted); scans
 lost (LJM buffer overflows, read errors, sequence gaps at the hub); the largest LJM backlog.
-The last line on stdout is one JSON object with the figures, the target and whether it is met.
+At the end the agent waits (--drain-s) until the hub has acked every batch it has sent (any
+dropped on the way replayed), then closes, and the hub's own count (its --summary file) is
+compared with the agent's: the same batches (0..last, any sent while it closed included), the
+same samples, no gap. The last line on stdout is one JSON object with the figures, the target
+and `met`, false with the reasons in `not_met_because` when anything was lost or not recorded.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import re
 import signal
 import socket
 import subprocess
@@ -91,6 +94,18 @@ def progress(msg: str) -> None:
     print(f"[t8] {msg}", file=sys.stderr, flush=True)
 
 
+def wait_acked(loop: Any, timeout: float) -> bool:
+    """Wait until the hub has acked every batch the stream has sent so far (a moving target
+    while it runs: it is met between two batches once the acks keep up, and a batch dropped on
+    the way has been replayed by then)."""
+    deadline = time.monotonic() + timeout
+    while loop.spool.acked < loop.counters.next_sequence - 1:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
 def generation_cpu(cfg: LabJackT8Stream, reads: int) -> float:
     """CPU seconds the simulator spends generating `reads` blocks (a real T8's hardware work)."""
     assert cfg.sim is not None
@@ -108,6 +123,7 @@ def generation_cpu(cfg: LabJackT8Stream, reads: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--drain-s", type=float, default=30.0, help="limit for the acks at the end")
     args = parser.parse_args()
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="fleetdaq-t8-") as tmp:
@@ -115,9 +131,19 @@ def main() -> None:
         cfg_path = data / "site.yaml"
         cfg_path.write_text(site_yaml(port, data))
         site = parse_config(cfg_path.read_text(), str(cfg_path))
+        summary_path = data / "hub-summary.json"
         hub_log = (data / "hub.log").open("wb")
         hub = subprocess.Popen(
-            [sys.executable, "-m", "fleetdaq", "hub", "--config", str(cfg_path)],
+            [
+                sys.executable,
+                "-m",
+                "fleetdaq",
+                "hub",
+                "--config",
+                str(cfg_path),
+                "--summary",
+                str(summary_path),
+            ],
             cwd=REPO,
             stdout=hub_log,
             stderr=subprocess.STDOUT,
@@ -145,8 +171,17 @@ def main() -> None:
             scans = loop.counters.scans - scans0
             health = driver.health()
             read_errors = loop.counters.read_errors
-            agent_batches = loop.counters.batches
+            # Drain: everything sent must be acked (durably recorded) just before the agent
+            # closes, so the hub's count can be compared with the agent's; what is sent between
+            # that and the close (a batch at most) must reach the hub too.
+            target_seq = loop.counters.next_sequence - 1
+            drained = wait_acked(loop, args.drain_s)
+            acked_at_close = loop.spool.acked
             agent.close()
+            agent_batches = loop.counters.batches
+            agent_last_seq = loop.counters.next_sequence - 1
+            agent_scans = loop.counters.scans
+            replayed = loop.counters.replayed
         finally:
             if hub.poll() is None:
                 hub.send_signal(signal.SIGTERM)
@@ -156,15 +191,36 @@ def main() -> None:
                 hub.kill()
                 hub.wait()
             hub_log.close()
-        log = (data / "hub.log").read_text(errors="replace")
-    m = re.findall(r"wec/t8: (\d+) batches, (\d+) samples, (\d+) gaps", log)
-    hub_batches, hub_samples, hub_gaps = (int(x) for x in m[-1]) if m else (0, 0, -1)
+        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    stream = summary.get("streams", {}).get("wec/t8")
+    if stream is None:
+        hub_batches, hub_samples, hub_gaps, hub_first, hub_last = 0, 0, -1, None, None
+        hub_acked = None
+    else:
+        hub_batches, hub_samples, hub_gaps = stream["batches"], stream["samples"], stream["gaps"]
+        hub_first, hub_last = stream["first_sequence"], stream["last_sequence"]
+        hub_acked = stream["acked"]
     samples = scans * CHANNELS
     gen_cpu = generation_cpu(site.nodes["wec"].streams["t8"], round(scans / SCANS))  # type: ignore[arg-type]
     lost = health["skipped_scans"] + max(hub_gaps, 0) * SCANS
     if read_errors:
         lost += read_errors * SCANS  # at least a read's worth each; the stream restarted
     cpu_per_ms = cpu / (samples / 1e6)
+    # The hub's count against the agent's: every batch the agent sent (sequences 0..last of a
+    # fresh spool) recorded once, with every sample, and nothing missing.
+    shortfalls = {
+        "hub summary missing (the hub did not stop cleanly)": stream is None,
+        "acks did not reach the last batch within --drain-s": not drained,
+        "hub's batches are not the agent's (count, first or last sequence)": hub_batches
+        != agent_batches
+        or hub_first != 0
+        or hub_last != agent_last_seq,
+        "hub recorded fewer samples than the agent acquired": hub_samples != agent_scans * CHANNELS,
+        "hub counted gaps": hub_gaps != 0,
+        "scans lost (LJM buffer overflow, read errors or hub gaps)": lost != 0,
+        "fewer scans than real time": scans < 0.98 * RATE_HZ * wall,
+    }
+    why = [k for k, bad in shortfalls.items() if bad]
     result: dict[str, Any] = {
         "bench": "t8",
         "seconds": round(wall, 2),
@@ -181,12 +237,23 @@ def main() -> None:
         "read_errors": read_errors,
         "skipped_scans": health["skipped_scans"],
         "agent_batches": agent_batches,
+        "agent_samples": agent_scans * CHANNELS,
         "hub_batches": hub_batches,
         "hub_samples": hub_samples,
         "hub_gaps": hub_gaps,
+        "drained": drained,
+        # Where a shortfall lies: the last sequence of the window, what was acked when the
+        # agent closed (everything sent by then), the last it sent, and the hub's final ack.
+        "window_last_sequence": target_seq,
+        "acked_at_close": acked_at_close,
+        "replayed_batches": replayed,
+        "agent_last_sequence": agent_last_seq,
+        "hub_acked_sequence": hub_acked,
         "lost_scans": lost,
-        "target": "0 scans lost because of the agent at 8 x 40 kS/s",
-        "met": lost == 0 and hub_gaps == 0 and scans >= 0.98 * RATE_HZ * wall,
+        "target": "0 scans lost because of the agent at 8 x 40 kS/s, and the hub records every "
+        "batch and sample the agent sent (absolute)",
+        "met": not why,
+        "not_met_because": why,
     }
     print(
         f"{scans} scans in {wall:.1f} s ({scans / wall:.0f} scans/s); CPU {cpu:.2f} s = "

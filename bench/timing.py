@@ -17,9 +17,12 @@ extended timer is set (labjack_timesync.cpp in NREL-MODAQ2/labjack_t8_ros2).
 
 Two read cadences run: 100 scans per read (MODAQ 2's default ScansPerRead at 10 kS/s) and
 1000 (fleetdaq's default, 100 ms of data). Each prints p50 / p99 / max |error| over all
-batches and over the settled part (after `--settle-s`, default 60 s): a fit has nothing to
-average at its first read, and its error then falls like (latency) / (reads so far). The
-target, p99 <= 10 µs, is judged on the settled part at MODAQ 2's cadence.
+batches and over the settled part (every batch after `--settle-s`, default 60 s, to the end of
+the run): a fit has nothing to average at its first read, and its error then falls like
+(latency) / (reads so far). The target, p99 <= 10 µs (absolute), is judged at fleetdaq's
+default cadence (1000 scans per read) over every batch after the settle time; MODAQ 2's
+one-shot offset on the same reads is the baseline (`vs_modaq2`: its p99 over the fit's).
+A run no longer than the settle time judges nothing and is not met.
 
 The last line on stdout is one JSON object with the figures.
 """
@@ -46,6 +49,8 @@ from fleetdaq.hub.config.load import parse_config
 
 RATE_HZ = 10_000
 TARGET_P99_US = 10.0
+DEFAULT_SCANS = 1000
+"""fleetdaq's default cadence at this rate: 100 ms of data per read (the judged one)."""
 TWO32 = 1 << 32
 UINT32_MAX = TWO32 - 1
 
@@ -122,6 +127,7 @@ def run(scans: int, args: argparse.Namespace) -> dict[str, Any]:
     return {
         "scans_per_read": scans,
         "reads": reads,
+        "settled_reads": int(settled.sum()),
         "fit_drift_ppm": round(fit.drift_ppm, 4),
         "core_timer_wraps": driver.timer.wraps,
         "cpu_s": round(cpu, 2),
@@ -132,7 +138,13 @@ def run(scans: int, args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def stats(errors_ns: np.ndarray) -> dict[str, float]:
+def rounded_ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or not b else float(f"{a / b:.4g}")
+
+
+def stats(errors_ns: np.ndarray) -> dict[str, float | None]:
+    if errors_ns.size == 0:
+        return {"p50": None, "p99": None, "max": None}
     e = np.abs(errors_ns) / 1e3
     p50, p99, worst = np.percentile(e, [50, 99, 100])
     return {"p50": float(f"{p50:.4g}"), "p99": float(f"{p99:.4g}"), "max": float(f"{worst:.4g}")}
@@ -152,7 +164,7 @@ def main() -> None:
         flush=True,
     )
     runs = []
-    for scans, label in ((100, "MODAQ 2 default cadence"), (1000, "fleetdaq default cadence")):
+    for scans, label in ((100, "MODAQ 2 default cadence"), (DEFAULT_SCANS, "fleetdaq default")):
         r = run(scans, args)
         runs.append(r)
         print(f"\n{scans} scans per read ({label}, {r['reads']} reads, cpu {r['cpu_s']} s)")
@@ -164,8 +176,16 @@ def main() -> None:
             (f"MODAQ 2, after {args.settle_s:g} s", "modaq2_settled_us"),
         ):
             s = r[key]
-            print(f"  {name:22} {s['p50']:>10} {s['p99']:>10} {s['max']:>12}")
-    headline = runs[0]["fit_settled_us"]["p99"]
+            print(f"  {name:22} {s['p50']!s:>10} {s['p99']!s:>10} {s['max']!s:>12}")
+    judged = next(r for r in runs if r["scans_per_read"] == DEFAULT_SCANS)
+    settled = judged["settled_reads"] > 0
+    headline = judged["fit_settled_us"]["p99"] if settled else None
+    baseline = judged["modaq2_settled_us"]["p99"] if settled else None
+    why = []
+    if headline is None:
+        why.append(f"the run ({args.minutes:g} min) is not longer than the settle time")
+    elif headline > TARGET_P99_US:
+        why.append(f"fit p99 {headline} us above {TARGET_P99_US:g} us")
     result = {
         "bench": "timing",
         "minutes": args.minutes,
@@ -173,9 +193,13 @@ def main() -> None:
         "latency_ms": args.latency_ms,
         "settle_s": args.settle_s,
         "runs": runs,
-        "target": f"fit p99 <= {TARGET_P99_US} us (settled, 100 scans per read)",
+        "target": f"fit p99 <= {TARGET_P99_US:g} us (absolute), every batch after"
+        f" {args.settle_s:g} s at the default {DEFAULT_SCANS} scans per read",
         "p99_us": headline,
-        "met": headline <= TARGET_P99_US,
+        "modaq2_p99_us": baseline,
+        "vs_modaq2": rounded_ratio(baseline, headline),
+        "met": not why,
+        "not_met_because": why,
     }
     print(json.dumps(result), flush=True)
 
