@@ -250,7 +250,7 @@ def _recorded(hub: Any) -> int:
 
 def _snapshot_bytes(hub: Any) -> int:
     """Payload bytes the hub's snapshot buffer holds now (0 without one)."""
-    return int(getattr(hub.snapshots, "_bytes", 0)) if hub.snapshots is not None else 0
+    return int(getattr(hub.snapshot_buffer, "_bytes", 0)) if hub.snapshot_buffer is not None else 0
 
 
 def run_hub(

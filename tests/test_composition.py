@@ -89,12 +89,12 @@ def test_the_interlock_the_rules_set_is_the_one_the_command_service_checks(tmp_p
 
 def test_the_recorder_hands_the_snapshot_buffer_what_it_takes(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
-    assert hub.snapshots is not None
+    assert hub.snapshot_buffer is not None
     tap = hub.recorder.tap  # called on the recorder's writer thread for every message it takes
     assert tap is not None
     now = time.time_ns()
     tap("/wec/health", b"\x00" * 8, now, now, "fleetdaq_msgs/msg/NodeHealth")
-    assert hub.snapshots.counters()["held_messages"] == 1
+    assert hub.snapshot_buffer.counters()["held_messages"] == 1
 
 
 def test_the_nodes_spooled_events_are_acked_through_the_event_logs_fsync(tmp_path: Path) -> None:
@@ -113,6 +113,6 @@ def test_the_nodes_spooled_events_are_acked_through_the_event_logs_fsync(tmp_pat
 
 def test_the_main_hubs_snapshot_triggers_reach_the_partitions_sender(tmp_path: Path) -> None:
     hub = HubRuntime(_site(), tmp_path)
-    assert hub.snapshots is not None
+    assert hub.snapshot_buffer is not None
     assert hub.snapshot_triggers is not None
-    assert hub.snapshots.on_trigger == hub.snapshot_triggers.send
+    assert hub.snapshot_buffer.on_trigger == hub.snapshot_triggers.send
