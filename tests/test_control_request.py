@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from fleetdaq.contract.messages import ACTIONS, REFUSALS
+from fleetdaq.contract.messages import ACTIONS, REFUSALS, RefusalReason
 from fleetdaq.hub import read_model
-from fleetdaq.hub.control.commands import Refusal
 from fleetdaq.hub.read_model import HubView, Part, ReadModel, StreamView
 from fleetdaq.hub.requests import (
     AlarmAction,
@@ -31,7 +30,11 @@ from fleetdaq.hub.supervision.alarms.requests import ACTIONS as ALARM_REQUEST_AC
 
 def test_the_actions_and_refusals_are_the_wires_strings():
     assert [a.value for a in ControlAction if a is not ControlAction.LIST] == list(ACTIONS)
-    assert [r.value for r in Refusal] == list(REFUSALS)
+    # The hub refuses with the edge's reasons (one enum, `RefusalReason`), plus its own timeout.
+    assert [r.value for r in REFUSALS] == [
+        "unknown_output", "not_armed", "out_of_limits", "too_fast", "interlock", "safe_state",
+        "too_old", "not_allowed", "device_error", "timeout",
+    ]  # fmt: skip
     assert [a.value for a in ALARM_REQUEST_ACTIONS] == [
         "list", "ack", "shelve", "unshelve", "disable", "enable"
     ]  # fmt: skip
@@ -39,7 +42,7 @@ def test_the_actions_and_refusals_are_the_wires_strings():
     assert [a.value for a in RecorderAction] == ["status", "start", "stop", "split", "snapshot"]
     # A StrEnum is its string: in JSON, in an f-string, compared with the wire's text.
     assert json.dumps({"action": ControlAction.PULSE}) == '{"action": "pulse"}'
-    assert f"{Refusal.TIMEOUT}" == "timeout" == Refusal.TIMEOUT
+    assert f"{RefusalReason.TIMEOUT}" == "timeout" == RefusalReason.TIMEOUT
 
 
 def test_a_good_request_is_one_frozen_object_from_bytes_or_from_a_json_object():

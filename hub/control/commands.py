@@ -24,7 +24,6 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from enum import StrEnum
 
 from pydantic import BaseModel
 
@@ -37,6 +36,7 @@ from fleetdaq.contract.messages import (
     OutputCommand,
     OutputReply,
     OutputState,
+    RefusalReason,
 )
 from fleetdaq.hub.bus import EventBus
 from fleetdaq.hub.config.site import SiteConfig
@@ -64,24 +64,7 @@ Blocked = Callable[[str, str], str | None]
 """blocked(node, output): the name of a hub interlock holding that output, or None."""
 
 
-class Refusal(StrEnum):
-    """Why a command is refused (`OutputReply.refusal`; `fleetdaq.contract.messages.REFUSALS`, the
-    same strings): by the edge, or by the hub before or instead of an answer."""
-
-    UNKNOWN_OUTPUT = "unknown_output"
-    NOT_ARMED = "not_armed"
-    OUT_OF_LIMITS = "out_of_limits"
-    TOO_FAST = "too_fast"
-    INTERLOCK = "interlock"
-    SAFE_STATE = "safe_state"
-    TOO_OLD = "too_old"
-    NOT_ALLOWED = "not_allowed"
-    DEVICE_ERROR = "device_error"
-    TIMEOUT = "timeout"
-    """The hub heard no (usable) reply."""
-
-
-def refused(cmd: OutputCommand, refusal: Refusal, message: str) -> OutputReply:
+def refused(cmd: OutputCommand, refusal: RefusalReason, message: str) -> OutputReply:
     return OutputReply(
         command_id=cmd.command_id, output=cmd.output, action=cmd.action, applied=False,
         refusal=refusal, message=message, requested=cmd.value, readback=math.nan,
@@ -178,12 +161,12 @@ class CommandService:
         sent_ns = time.time_ns()
         if f"{node}/{output}" not in self.outputs():
             reply = refused(
-                cmd, Refusal.UNKNOWN_OUTPUT, f"the site file has no output {node}/{output}"
+                cmd, RefusalReason.UNKNOWN_OUTPUT, f"the site file has no output {node}/{output}"
             )
         elif (
             action in VALUED and not unblocked and (lock := self.blocked(node, output)) is not None
         ):
-            reply = refused(cmd, Refusal.INTERLOCK, f"interlock {lock} active")
+            reply = refused(cmd, RefusalReason.INTERLOCK, f"interlock {lock} active")
         else:
             reply = self._ask(node, cmd)
         self._record(node, cmd, reply, sent_ns)
@@ -220,15 +203,17 @@ class CommandService:
                     reply = decode(r.ok.payload.to_bytes(), OutputReply)
                 except WireError as err:
                     return refused(
-                        cmd, Refusal.TIMEOUT, f"{node} answered with something else: {err}"
+                        cmd, RefusalReason.TIMEOUT, f"{node} answered with something else: {err}"
                     )
                 if reply.command_id != cmd.command_id:
-                    return refused(cmd, Refusal.TIMEOUT, f"{node} answered another command")
+                    return refused(cmd, RefusalReason.TIMEOUT, f"{node} answered another command")
                 return reply
         except Exception as err:  # the network, not the command: a timeout for the caller
             log.warning("command to %s/%s: %s", node, cmd.output, err)
-            return refused(cmd, Refusal.TIMEOUT, f"could not ask {node}: {err}")
-        return refused(cmd, Refusal.TIMEOUT, f"{node} did not answer within {self.timeout_s:g} s")
+            return refused(cmd, RefusalReason.TIMEOUT, f"could not ask {node}: {err}")
+        return refused(
+            cmd, RefusalReason.TIMEOUT, f"{node} did not answer within {self.timeout_s:g} s"
+        )
 
     def _record(self, node: str, cmd: OutputCommand, reply: OutputReply, sent_ns: int) -> None:
         now = time.time_ns()
@@ -240,7 +225,7 @@ class CommandService:
                 self.applied += 1
             else:
                 self.refused += 1
-                self.timeouts += reply.refusal == Refusal.TIMEOUT
+                self.timeouts += reply.refusal == RefusalReason.TIMEOUT
         record = CommandRecord(cmd, reply, node, sent_ns, now)
         topic = commands_topic(node) if node in self.site.nodes else HUB_COMMANDS_TOPIC
         self.recorder.record(topic, encode(record), sent_ns, now, COMMAND_RECORD_TYPE)
